@@ -1,0 +1,94 @@
+"""The one explicit env registry: id -> how to build the env (single and batched).
+
+Ids are "<family>/<name>" (`matrix/two_step`, later `skirmish/3m`, `smac/3m`). Nothing
+registers itself on import: every family is listed in `_families()` below.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
+from actors.envs.matrix import make_four_game, make_two_step
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """How to build one registered env.
+
+    Attributes:
+        id: "<family>/<name>".
+        make: factory `(seed=..., **args) -> MultiAgentEnv`.
+        make_vec: optional native batched factory `(num_envs, seed=..., **args) -> VecEnv`;
+            without one, `make_vec_env` steps `num_envs` single envs serially.
+        description: one line for `credit env list`.
+    """
+
+    id: str
+    make: Callable[..., MultiAgentEnv]
+    make_vec: Callable[..., VecEnv] | None = None
+    description: str = ""
+
+
+def _families() -> list[EnvSpec]:
+    specs = [
+        EnvSpec("matrix/two_step", make_two_step, description="QMIX two-step game (optimum 8)"),
+        EnvSpec("matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"),
+    ]
+    return specs
+
+
+REGISTRY: dict[str, EnvSpec] = {spec.id: spec for spec in _families()}
+
+
+def env_ids() -> list[str]:
+    return sorted(REGISTRY)
+
+
+def get_spec(env_id: str) -> EnvSpec:
+    """Return the spec of `env_id`; unknown ids raise EnvError listing the valid ones."""
+    try:
+        return REGISTRY[env_id]
+    except KeyError:
+        raise EnvError(f"unknown env {env_id!r}; valid envs: {', '.join(env_ids())}") from None
+
+
+def _call(factory: Callable[..., Any], env_id: str, *args: Any, **kwargs: Any) -> Any:
+    params = inspect.signature(factory).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        for key in kwargs:
+            if key not in params:
+                valid = [k for k in params if k not in ("seed", "num_envs")]
+                raise EnvError(f"env {env_id!r} has no argument {key!r}; valid arguments: {valid}")
+    return factory(*args, **kwargs)
+
+
+def make_env(env_id: str, seed: int | None = None, **args: Any) -> MultiAgentEnv:
+    """Build one SMAC-API env. Unknown ids and arguments raise EnvError naming them."""
+    spec = get_spec(env_id)
+    return _call(spec.make, env_id, seed=seed, **args)
+
+
+def make_vec_env(env_id: str, num_envs: int, seed: int | None = None, **args: Any) -> VecEnv:
+    """Build `num_envs` envs stepped together; env k is seeded with `seed + k`."""
+    if num_envs < 1:
+        raise EnvError(f"num_envs must be >= 1, got {num_envs}")
+    spec = get_spec(env_id)
+    if spec.make_vec is not None:
+        return _call(spec.make_vec, env_id, num_envs, seed=seed, **args)
+    envs = [
+        _call(spec.make, env_id, seed=None if seed is None else seed + k, **args)
+        for k in range(num_envs)
+    ]
+    return SerialVecEnv(envs)
+
+
+def env_info(env_id: str, **args: Any) -> EnvInfo:
+    env = make_env(env_id, seed=0, **args)
+    try:
+        return env_info_of(env)
+    finally:
+        env.close()

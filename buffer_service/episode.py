@@ -1,0 +1,206 @@
+"""The episode record that crosses process boundaries, and its padded batch form.
+
+Actors record whole episodes; nothing here is computed from rewards (returns, targets and
+advantages belong to the learner). Arrays keep the agent axis before the feature axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+# dtype of every array field; the codec and the validators both read this table.
+EPISODE_DTYPES: dict[str, np.dtype] = {
+    "obs": np.dtype(np.float32),
+    "state": np.dtype(np.float32),
+    "avail_actions": np.dtype(np.uint8),
+    "actions": np.dtype(np.int64),
+    "reward": np.dtype(np.float32),
+    "terminated": np.dtype(np.bool_),
+    "filled": np.dtype(np.bool_),
+}
+EPISODE_ARRAYS: tuple[str, ...] = tuple(EPISODE_DTYPES)
+EPISODE_SCALARS: tuple[str, ...] = ("actor_id", "episode_seq", "policy_version")
+
+
+class EpisodeError(ValueError):
+    """An episode or batch whose arrays do not match the schema."""
+
+
+@dataclass(frozen=True)
+class EpisodeSchema:
+    """Sizes every episode of one environment shares.
+
+    Attributes:
+        n_agents: number of controlled agents N.
+        obs_dim: per-agent observation length O.
+        state_dim: global state length S.
+        n_actions: per-agent discrete action count A.
+        max_t: episode limit; an episode has 1..max_t transitions.
+    """
+
+    n_agents: int
+    obs_dim: int
+    state_dim: int
+    n_actions: int
+    max_t: int
+
+    def shapes(self, t: int) -> dict[str, tuple[int, ...]]:
+        """Expected array shapes of an episode with `t` transitions."""
+        n, a = self.n_agents, self.n_actions
+        return {
+            "obs": (t + 1, n, self.obs_dim),
+            "state": (t + 1, self.state_dim),
+            "avail_actions": (t + 1, n, a),
+            "actions": (t, n),
+            "reward": (t,),
+            "terminated": (t,),
+            "filled": (t,),
+        }
+
+    def to_dict(self) -> dict[str, int]:
+        return {f.name: int(getattr(self, f.name)) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EpisodeSchema:
+        names = {f.name for f in fields(cls)}
+        if set(d) != names:
+            raise EpisodeError(f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}")
+        return cls(**{k: int(d[k]) for k in names})
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One whole episode of T transitions (T >= 1).
+
+    Shapes:
+        obs [T+1, N, O] float32; state [T+1, S] float32; avail_actions [T+1, N, A] uint8;
+        actions [T, N] int64; reward [T] float32; terminated [T] bool (true environment
+        termination; a time-limit cut is *not* terminal and is bootstrapped); filled [T] bool
+        (all True for a stored episode; False marks padding inside an EpisodeBatch).
+    Scalars:
+        actor_id: the recording actor; episode_seq: that actor's running episode counter (the
+        pair makes inserts idempotent); policy_version: weights version that acted.
+    """
+
+    obs: np.ndarray
+    state: np.ndarray
+    avail_actions: np.ndarray
+    actions: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    filled: np.ndarray
+    actor_id: int = 0
+    episode_seq: int = 0
+    policy_version: int = 0
+
+    @property
+    def length(self) -> int:
+        return int(self.actions.shape[0])
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return (int(self.actor_id), int(self.episode_seq))
+
+    def validate(self, schema: EpisodeSchema) -> None:
+        """Raise EpisodeError naming the first field that breaks `schema`."""
+        t = self.length
+        if not 1 <= t <= schema.max_t:
+            raise EpisodeError(f"episode length {t} outside 1..{schema.max_t}")
+        for name, shape in schema.shapes(t).items():
+            arr = getattr(self, name)
+            if not isinstance(arr, np.ndarray):
+                raise EpisodeError(f"field {name!r} is {type(arr).__name__}, not a numpy array")
+            if arr.dtype != EPISODE_DTYPES[name]:
+                raise EpisodeError(f"field {name!r} has dtype {arr.dtype}, expected {EPISODE_DTYPES[name]}")
+            if arr.shape != shape:
+                raise EpisodeError(f"field {name!r} has shape {arr.shape}, expected {shape}")
+        for name in ("obs", "state", "reward"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise EpisodeError(f"field {name!r} holds NaN or inf")
+        if np.any(self.actions < 0) or np.any(self.actions >= schema.n_actions):
+            raise EpisodeError(f"field 'actions' has values outside 0..{schema.n_actions - 1}")
+        if np.any(self.terminated[:-1]):
+            raise EpisodeError("field 'terminated' is set before the last transition")
+
+
+@dataclass(frozen=True)
+class EpisodeBatch:
+    """Episodes padded to a common length T (the longest in the batch).
+
+    Shapes: as `Episode` with a leading batch axis B (and, for seed-batched training, an
+    ensemble axis E before it): obs [.., B, T+1, N, O], actions [.., B, T, N], filled [.., B, T]
+    marks real transitions; actor_id / episode_seq / policy_version are [.., B] int64.
+    """
+
+    obs: np.ndarray
+    state: np.ndarray
+    avail_actions: np.ndarray
+    actions: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    filled: np.ndarray
+    actor_id: np.ndarray
+    episode_seq: np.ndarray
+    policy_version: np.ndarray
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.reward.shape[-2])
+
+    @property
+    def max_t(self) -> int:
+        return int(self.reward.shape[-1])
+
+    @classmethod
+    def from_episodes(cls, episodes: list[Episode], pad_to: int | None = None) -> EpisodeBatch:
+        """Pad and stack `episodes` (padding: zeros, avail_actions of padding = no-op only)."""
+        if not episodes:
+            raise EpisodeError("cannot batch zero episodes")
+        t = max(ep.length for ep in episodes) if pad_to is None else pad_to
+        b = len(episodes)
+        out: dict[str, np.ndarray] = {}
+        for name in EPISODE_ARRAYS:
+            first = getattr(episodes[0], name)
+            steps = t + 1 if name in ("obs", "state", "avail_actions") else t
+            out[name] = np.zeros((b, steps, *first.shape[1:]), dtype=EPISODE_DTYPES[name])
+        out["avail_actions"][..., 0] = 1
+        for i, ep in enumerate(episodes):
+            n = ep.length
+            if n > t:
+                raise EpisodeError(f"episode of length {n} does not fit pad_to={t}")
+            for name in EPISODE_ARRAYS:
+                arr = getattr(ep, name)
+                out[name][i, : arr.shape[0]] = arr
+        scal = {k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64) for k in EPISODE_SCALARS}
+        return cls(**out, **scal)
+
+    @classmethod
+    def stack(cls, batches: list[EpisodeBatch]) -> EpisodeBatch:
+        """Stack same-shaped batches along a new leading ensemble axis E."""
+        t = max(b.max_t for b in batches)
+        padded = [b.pad_to(t) for b in batches]
+        return cls(**{f.name: np.stack([getattr(b, f.name) for b in padded]) for f in fields(cls)})
+
+    def pad_to(self, t: int) -> EpisodeBatch:
+        """Return this batch padded along the time axis to `t` transitions."""
+        extra = t - self.max_t
+        if extra == 0:
+            return self
+        if extra < 0:
+            raise EpisodeError(f"cannot pad a batch of length {self.max_t} down to {t}")
+        out = {}
+        for f in fields(self):
+            arr = getattr(self, f.name)
+            if f.name in EPISODE_SCALARS:
+                out[f.name] = arr
+                continue
+            axis = arr.ndim - (3 if f.name in ("obs", "avail_actions") else 2 if f.name in ("state", "actions") else 1)
+            width = [(0, 0)] * arr.ndim
+            width[axis] = (0, extra)
+            padded = np.pad(arr, width)
+            if f.name == "avail_actions":
+                padded[..., -extra:, :, 0] = 1
+            out[f.name] = padded
+        return EpisodeBatch(**out)

@@ -1,0 +1,51 @@
+"""The `credit` command line. Each subcommand lives in `cluster/commands/<name>.py` and
+exposes `register(subparsers)`; the list below is the whole registry of commands."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from actors.envs.base import EnvError
+from cluster.commands import env as env_cmd
+from cluster.config import ConfigError
+
+log = logging.getLogger("credit")
+
+COMMANDS = [env_cmd]
+
+
+class UsageError(ValueError):
+    """Bad command-line input that argparse itself cannot catch."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="credit", description=__doc__.split("\n")[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module in COMMANDS:
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, EnvError, UsageError) as e:
+        print(f"credit: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("credit: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
