@@ -1,0 +1,18 @@
+"""`credit bench <what>`: benchmarks that print one JSON object (machine, command, figures).
+
+Each benchmark lives in `cluster/bench/<what>.py` and exposes `register(subparsers)`; the
+list below is the whole registry of benchmarks.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+BENCHES: list = []
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks that print JSON")
+    bench_sub = p.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
+    for module in BENCHES:
+        module.register(bench_sub)
