@@ -8,17 +8,16 @@ import logging
 import sys
 
 from actors.envs.base import EnvError
+from cluster.cli_errors import UsageError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import env as env_cmd
+from cluster.commands import repro as repro_cmd
+from cluster.commands import train as train_cmd
 from cluster.config import ConfigError
 
 log = logging.getLogger("credit")
 
-COMMANDS = [env_cmd, bench_cmd]
-
-
-class UsageError(ValueError):
-    """Bad command-line input that argparse itself cannot catch."""
+COMMANDS = [train_cmd, repro_cmd, env_cmd, bench_cmd]
 
 
 def build_parser() -> argparse.ArgumentParser:

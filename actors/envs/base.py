@@ -23,6 +23,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from buffer_service.episode import EpisodeSchema
+
 
 class EnvError(ValueError):
     """Bad env id, bad env arguments, or an action the env cannot take."""
@@ -39,6 +41,10 @@ class EnvInfo:
     episode_limit: int
     has_wins: bool = True
     n_enemies: int = 0
+
+    def schema(self) -> EpisodeSchema:
+        """The episode schema every episode of this env satisfies."""
+        return EpisodeSchema(self.n_agents, self.obs_shape, self.state_shape, self.n_actions, self.episode_limit)
 
     def as_smac_dict(self) -> dict[str, int]:
         return {

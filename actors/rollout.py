@@ -1,0 +1,143 @@
+"""RolloutWorker: steps a batch of envs with the current policy and records whole episodes.
+
+Actors only act and record; returns, targets and advantages are the learner's business.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from actors.envs.base import VecEnv
+from actors.policy import ExplorationConfig, select_actions
+from buffer_service.episode import Episode
+from learner.networks import AgentNet, VersionedWeights
+
+
+@dataclass(frozen=True)
+class RoundResult:
+    """One episode from every env of the worker.
+
+    Attributes:
+        episodes: in env order; env k belongs to ensemble member k // envs_per_member.
+        returns: [num_envs] undiscounted episode returns.
+        won: [num_envs] battle won (False where the env has no wins).
+        env_steps: transitions recorded in this round.
+    """
+
+    episodes: list[Episode]
+    returns: np.ndarray
+    won: np.ndarray
+    env_steps: int
+
+
+class RolloutWorker:
+    """Acts in `venv` with an AgentNet of `n_ensemble` members (E = 1 for a normal run).
+
+    Calling loop::
+
+        worker = RolloutWorker(venv, agent_net, "q", ExplorationConfig(), actor_id=3)
+        worker.set_weights(learner.get_weights())      # adopted only if newer
+        episodes = worker.collect(8, t_env=t)          # list[Episode]
+    """
+
+    def __init__(
+        self,
+        venv: VecEnv,
+        agent: AgentNet,
+        policy_kind: str,
+        exploration: ExplorationConfig,
+        n_ensemble: int = 1,
+        actor_id: int = 0,
+        seed: int = 0,
+    ):
+        if venv.num_envs % n_ensemble:
+            raise ValueError(f"num_envs={venv.num_envs} is not a multiple of n_ensemble={n_ensemble}")
+        self.venv, self.agent, self.kind = venv, agent, policy_kind
+        self.exploration, self.n_ensemble, self.actor_id = exploration, n_ensemble, actor_id
+        self.info = venv.info
+        self.gen = torch.Generator().manual_seed(seed)
+        self.version = -1
+        self.episode_seq = 0
+        self.t_env = 0
+
+    def set_weights(self, weights: VersionedWeights) -> bool:
+        """Adopt `weights` if newer than the current ones; returns whether it did."""
+        if weights.version <= self.version:
+            return False
+        weights.load_into(self.agent)
+        self.version = weights.version
+        return True
+
+    def collect(self, num_episodes: int, t_env: int | None = None, greedy: bool = False) -> list[Episode]:
+        """At least `num_episodes` episodes (whole rounds of `num_envs`)."""
+        episodes: list[Episode] = []
+        while len(episodes) < num_episodes:
+            episodes.extend(self.run_round(t_env, greedy).episodes)
+        return episodes
+
+    def run_round(self, t_env: int | None = None, greedy: bool = False) -> RoundResult:
+        """Reset every env and play one episode in each until all have ended."""
+        info, venv = self.info, self.venv
+        k, n, a = venv.num_envs, info.n_agents, info.n_actions
+        e, m = self.n_ensemble, venv.num_envs // self.n_ensemble
+        limit = info.episode_limit
+        eps = self.exploration.epsilon(self.t_env if t_env is None else t_env)
+        obs = np.zeros((k, limit + 1, n, info.obs_shape), np.float32)
+        state = np.zeros((k, limit + 1, info.state_shape), np.float32)
+        avail = np.zeros((k, limit + 1, n, a), np.uint8)
+        actions = np.zeros((k, limit, n), np.int64)
+        reward = np.zeros((k, limit), np.float32)
+        terminated = np.zeros((k, limit), bool)
+        length = np.zeros(k, np.int64)
+        won = np.zeros(k, bool)
+        venv.reset()
+        active = np.ones(k, bool)
+        h = self.agent.init_hidden(e, m * n)
+        last = torch.zeros(e, m * n, a)
+        ids = torch.eye(n).repeat(m, 1).expand(e, m * n, n)
+        t = 0
+        with torch.no_grad():
+            while active.any() and t < limit:
+                obs[:, t], state[:, t], avail[:, t] = venv.get_obs(), venv.get_state(), venv.get_avail_actions()
+                x = torch.cat([torch.from_numpy(obs[:, t]).view(e, m * n, -1), last, ids], -1)
+                out, h = self.agent(x, h)
+                av = torch.from_numpy(avail[:, t]).view(e, m * n, a).bool()
+                act = select_actions(out, av, self.kind, eps, greedy, self.gen)
+                last = F.one_hot(act, a).float()
+                acts = act.view(k, n).numpy()
+                r, done, infos = venv.step(acts, active)
+                actions[:, t], reward[:, t] = acts, np.where(active, r, 0.0)
+                for j in np.flatnonzero(active & done):
+                    terminated[j, t] = not infos[j].get("episode_limit", False)
+                    won[j] = bool(infos[j].get("battle_won", False))
+                    length[j] = t + 1
+                active &= ~done
+                t += 1
+            length[active] = t  # cut by our own loop bound: a time-limit cut, not terminal
+            obs[:, t], state[:, t], avail[:, t] = venv.get_obs(), venv.get_state(), venv.get_avail_actions()
+        episodes = [self._episode(j, length[j], obs, state, avail, actions, reward, terminated) for j in range(k)]
+        steps = int(length.sum())
+        if t_env is None:
+            self.t_env += steps
+        return RoundResult(episodes, reward.sum(1), won, steps)
+
+    def _episode(self, j, t, obs, state, avail, actions, reward, terminated) -> Episode:
+        # The last observation of an env that ended before the round's final step was
+        # recorded when it ended (index t), since later rows are only read for active envs.
+        self.episode_seq += 1
+        return Episode(
+            obs=obs[j, : t + 1].copy(),
+            state=state[j, : t + 1].copy(),
+            avail_actions=avail[j, : t + 1].copy(),
+            actions=actions[j, :t].copy(),
+            reward=reward[j, :t].copy(),
+            terminated=terminated[j, :t].copy(),
+            filled=np.ones(t, bool),
+            actor_id=self.actor_id,
+            episode_seq=self.episode_seq,
+            policy_version=max(self.version, 0),
+        )

@@ -1,0 +1,105 @@
+"""`credit train`: train one algorithm on one env and write config, metrics, summary, checkpoint.
+
+Outputs under --out: config.yaml, metrics.jsonl (one JSON object per evaluation),
+summary.json and checkpoint/ (also refreshed every run.save_interval env steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+import yaml
+
+from cluster.config import ConfigError
+from cluster.run_config import load_train_config
+from cluster.trainer import EvalRecord, LocalTrainer, write_json
+from learner.common import NonFiniteLossError
+from learner.registry import ALGOS
+
+log = logging.getLogger(__name__)
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """Arguments shared by every command that builds a TrainConfig."""
+    p.add_argument("--algo", help=f"algorithm, one of: {', '.join(sorted(ALGOS))} (default rdn)")
+    p.add_argument("--env", help="env id, see `credit env list` (default matrix/four_game)")
+    p.add_argument("--config", action="append", default=[], metavar="FILE", help="YAML config layered on the shipped defaults (repeatable)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key, e.g. algo.lr=0.001 (repeatable)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train one algorithm on one env")
+    add_run_arguments(p)
+    p.add_argument("--seed", type=int, help="random seed (run.seed)")
+    p.add_argument("--t-max", type=int, help="env steps to train (run.t_max)")
+    p.add_argument("--out", default=None, help="output folder (default runs/<algo>_<env>_s<seed>)")
+    p.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its checkpoint")
+    p.add_argument("--mode", choices=["local"], default="local", help="local: one process")
+    p.set_defaults(func=cmd_train)
+
+
+def _overrides(args: argparse.Namespace) -> list[str]:
+    sets = list(args.set)
+    if args.seed is not None:
+        sets.append(f"run.seed={args.seed}")
+    if args.t_max is not None:
+        sets.append(f"run.t_max={args.t_max}")
+    return sets
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    if args.resume:
+        out = Path(args.resume)
+        if not (out / "checkpoint" / "learner.pt").exists():
+            raise ConfigError(f"--resume {out}: no checkpoint at {out / 'checkpoint'}")
+        cfg = load_train_config(args.algo, args.env, [str(out / "config.yaml"), *args.config], _overrides(args))
+    else:
+        cfg = load_train_config(args.algo, args.env, args.config, _overrides(args))
+        name = f"{cfg.algo_name}_{cfg.env.id.replace('/', '-')}_s{cfg.run.seed}"
+        out = Path(args.out or Path("runs") / name)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False))
+    trainer = LocalTrainer(cfg, checkpoint_dir=out / "checkpoint")
+    if args.resume:
+        trainer.restore(out / "checkpoint")
+        log.info("resumed %s at t_env=%d", out, trainer.t_env)
+    records: list[EvalRecord] = []
+    with open(out / "metrics.jsonl", "a" if args.resume else "w") as metrics_file:
+
+        def on_eval(recs: list[EvalRecord]) -> None:
+            records.extend(recs)
+            for r in recs:
+                metrics_file.write(json.dumps(r.as_json()) + "\n")
+            metrics_file.flush()
+
+        log.info("training %s on %s for %d env steps -> %s", cfg.algo_name, cfg.env.id, cfg.run.t_max, out)
+        try:
+            trainer.train(on_eval=on_eval, progress=True)
+        except NonFiniteLossError as e:
+            log.error("stopping: %s; the last good checkpoint in %s is untouched", e, out / "checkpoint")
+            return 3
+    if not records or records[-1].t_env != trainer.t_env:
+        on_final = trainer.evaluate()
+        records.extend(on_final)
+        with open(out / "metrics.jsonl", "a") as f:
+            for r in on_final:
+                f.write(json.dumps(r.as_json()) + "\n")
+    trainer.save(out / "checkpoint")
+    last = records[-1]
+    summary = {
+        "algo": cfg.algo_name,
+        "env": cfg.env.id,
+        "seed": cfg.run.seed,
+        "t_env": trainer.t_env,
+        "episodes": trainer.episodes,
+        "updates": trainer.learner.updates,
+        "wall_s": round(trainer.wall_s, 3),
+        "final_test_return_mean": last.test_return_mean,
+        "final_test_won_mean": last.test_won_mean,
+    }
+    write_json(out / "summary.json", summary)
+    print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
+    return 0

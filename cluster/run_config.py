@@ -1,0 +1,146 @@
+"""The configuration of a training run: one frozen dataclass per component, loaded from the
+algorithm's and env family's YAML in configs/, user files and `--set` overrides."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from actors.envs.registry import get_spec
+from actors.policy import ExplorationConfig
+from cluster.config import ConfigError, build, deep_merge, parse_overrides, read_yaml, to_dict
+from learner.registry import get_algo
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Which environment to train in.
+
+    Attributes:
+        id: registered env id, e.g. matrix/four_game (see `credit env list`).
+        args: keyword arguments of that env's factory (e.g. payoffs for matrix/four_game).
+    """
+
+    id: str = "matrix/four_game"
+    args: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        get_spec(self.id)
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Episode replay of the value family (seed: 1000 episodes / batch 32 on SMAC, 200 / 4 on
+    the matrix games).
+
+    Attributes:
+        capacity: episodes kept (oldest dropped).
+        batch_size: episodes per update.
+    """
+
+    capacity: int = 1000
+    batch_size: int = 32
+
+    def validate(self) -> None:
+        if self.capacity < 1 or self.batch_size < 1:
+            raise ValueError("capacity and batch_size must be >= 1")
+        if self.batch_size > self.capacity:
+            raise ValueError(f"batch_size={self.batch_size} exceeds capacity={self.capacity}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The training loop.
+
+    Attributes:
+        t_max: env steps to train for.
+        seed: base random seed.
+        num_envs: envs stepped together per rollout round (episodes per update).
+        test_interval: env steps between greedy evaluations.
+        test_episodes: greedy episodes per evaluation.
+        save_interval: env steps between checkpoints (0: only at the end).
+        device: torch device of the learner.
+    """
+
+    t_max: int = 2_000_000
+    seed: int = 0
+    num_envs: int = 1
+    test_interval: int = 10_000
+    test_episodes: int = 20
+    save_interval: int = 0
+    device: str = "cpu"
+
+    def validate(self) -> None:
+        for name in ("t_max", "num_envs", "test_interval", "test_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.save_interval < 0:
+            raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A whole run. `algo` is an instance of the registry's config class for `algo_name`."""
+
+    algo_name: str
+    algo: Any
+    env: EnvConfig
+    exploration: ExplorationConfig
+    replay: ReplayConfig
+    run: RunConfig
+
+    def to_yaml_dict(self) -> dict[str, Any]:
+        return {
+            "algo_name": self.algo_name,
+            "algo": to_dict(self.algo),
+            "env": to_dict(self.env),
+            "exploration": to_dict(self.exploration),
+            "replay": to_dict(self.replay),
+            "run": to_dict(self.run),
+        }
+
+
+SECTIONS = {"env": EnvConfig, "exploration": ExplorationConfig, "replay": ReplayConfig, "run": RunConfig}
+
+
+def default_files(algo: str, env_id: str) -> list[Path]:
+    """The shipped YAML layers for (algo, env): algos/<algo>.yaml, envs/<family>.yaml,
+    envs/<family>/<name>.yaml, each only if present."""
+    family, _, name = env_id.partition("/")
+    candidates = [CONFIG_DIR / "algos" / f"{algo}.yaml", CONFIG_DIR / "envs" / f"{family}.yaml"]
+    candidates.append(CONFIG_DIR / "envs" / family / f"{name}.yaml")
+    return [p for p in candidates if p.exists()]
+
+
+def load_train_config(
+    algo: str | None, env_id: str | None, files: list[str] = (), overrides: list[str] = ()
+) -> TrainConfig:
+    """Merge defaults <- shipped YAML <- user files <- --set overrides, then validate.
+
+    `algo`/`env_id` from the command line win over `algo_name`/`env.id` in files.
+    """
+    user: dict[str, Any] = {}
+    for f in files:
+        user = deep_merge(user, read_yaml(f))
+    user = deep_merge(user, parse_overrides(list(overrides)))
+    algo = algo or user.get("algo_name") or "rdn"
+    env_id = env_id or user.get("env", {}).get("id") or EnvConfig.id
+    try:
+        spec = get_algo(algo)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    data: dict[str, Any] = {}
+    for path in default_files(algo, env_id):
+        data = deep_merge(data, read_yaml(path))
+    data = deep_merge(data, user)
+    data["algo_name"] = algo
+    data.setdefault("env", {})["id"] = env_id
+    unknown = [k for k in data if k not in (*SECTIONS, "algo", "algo_name")]
+    if unknown:
+        raise ConfigError(f"unknown config section {unknown[0]!r}; valid sections: algo, {', '.join(SECTIONS)}")
+    built = {name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()}
+    algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
+    return TrainConfig(algo_name=algo, algo=algo_cfg, **built)

@@ -1,0 +1,230 @@
+"""The single-process training loop (`credit train --mode local`), seed-batched when asked.
+
+One loop serves a normal run (E = 1) and a seed-batched run (E members trained side by side in
+the same tensors, each with its own envs, replay and random streams; see learner.networks).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from actors.envs.registry import make_vec_env
+from actors.rollout import RolloutWorker
+from buffer_service.episode import EpisodeBatch
+from cluster.run_config import TrainConfig
+from learner.networks import AgentNet
+from learner.registry import Learner, get_algo
+from learner.replay import EpisodeReplay
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EvalRecord:
+    """One greedy evaluation of one ensemble member."""
+
+    member: int
+    t_env: int
+    episode: int
+    test_return_mean: float
+    test_won_mean: float | None
+    wall_s: float
+    updates: int
+
+    def as_json(self) -> dict:
+        d = {
+            "t_env": self.t_env,
+            "episode": self.episode,
+            "test_return_mean": self.test_return_mean,
+            "wall_s": round(self.wall_s, 3),
+            "updates": self.updates,
+        }
+        if self.test_won_mean is not None:
+            d["test_won_mean"] = self.test_won_mean
+        return d
+
+
+class Progress:
+    """A one-line progress bar on a terminal; periodic log lines otherwise."""
+
+    def __init__(self, total: int, every_s: float = 10.0):
+        self.total, self.every_s = total, every_s
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+
+    def update(self, done: int, text: str) -> None:
+        now = time.monotonic()
+        if self.tty:
+            frac = min(1.0, done / self.total)
+            bar = "#" * int(30 * frac)
+            sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}% {text}")
+            sys.stderr.flush()
+        elif now - self.last >= self.every_s:
+            log.info("t_env %d/%d %s", done, self.total, text)
+            self.last = now
+
+    def close(self) -> None:
+        if self.tty:
+            sys.stderr.write("\n")
+
+
+class LocalTrainer:
+    """Rollouts, replay and updates in one process for E seed-batched members.
+
+    Calling loop::
+
+        trainer = LocalTrainer(cfg, n_ensemble=1)
+        trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
+        trainer.save(path)
+    """
+
+    def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
+        self.cfg, self.E = cfg, n_ensemble
+        self.checkpoint_dir = checkpoint_dir
+        run = cfg.run
+        torch.manual_seed(run.seed)
+        self.spec = get_algo(cfg.algo_name)
+        self.venv = make_vec_env(cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args)
+        self.test_venv = make_vec_env(cfg.env.id, n_ensemble * run.test_episodes, seed=run.seed + 10_000, **cfg.env.args)
+        self.info = self.venv.info
+        schema = self.info.schema()
+        self.learner: Learner = self.spec.build(cfg.algo, schema, n_ensemble, run.device)
+        self.worker = self._worker(self.venv, run.seed)
+        self.test_worker = self._worker(self.test_venv, run.seed + 1)
+        self.replays = [
+            EpisodeReplay(cfg.replay.capacity, np.random.default_rng(run.seed * 1000 + k)) for k in range(n_ensemble)
+        ]
+        self.t_env = 0
+        self.episodes = 0
+        self.last_test_t = -run.test_interval
+        self.last_save_t = 0
+        self.started = time.monotonic()
+        self.wall_offset = 0.0
+        self.last_metrics: dict[str, float] = {}
+
+    def _worker(self, venv, seed: int) -> RolloutWorker:
+        a = self.info
+        in_dim = a.obs_shape + a.n_actions + a.n_agents
+        agent_cfg = self.cfg.algo.agent
+        net = AgentNet(self.E, in_dim, a.n_actions, agent_cfg.hidden, agent_cfg.fc)
+        return RolloutWorker(venv, net, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed)
+
+    @property
+    def wall_s(self) -> float:
+        return self.wall_offset + time.monotonic() - self.started
+
+    def train(self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False) -> None:
+        """Train until t_env >= t_max, evaluating every test_interval env steps."""
+        run, bs = self.cfg.run, self.cfg.replay.batch_size
+        bar = Progress(run.t_max) if progress else None
+        while self.t_env < run.t_max:
+            self.worker.set_weights(self.learner.get_weights())
+            result = self.worker.run_round(t_env=self.t_env)
+            per = run.num_envs
+            for j, ep in enumerate(result.episodes):
+                self.replays[j // per].add(ep)
+            self.t_env += result.env_steps // self.E
+            self.episodes += per
+            if all(r.can_sample(bs) for r in self.replays):
+                batches = [r.sample(bs) for r in self.replays]
+                batch = batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
+                self.last_metrics = self.learner.step(batch)
+            if self.t_env - self.last_test_t >= run.test_interval:
+                records = self.evaluate()
+                self.last_test_t = self.t_env
+                if on_eval:
+                    on_eval(records)
+                if bar:
+                    bar.update(self.t_env, f"test_return {np.mean([r.test_return_mean for r in records]):.3f}")
+            if run.save_interval and self.t_env - self.last_save_t >= run.save_interval and self.checkpoint_dir:
+                self.save(self.checkpoint_dir)
+                self.last_save_t = self.t_env
+        if bar:
+            bar.close()
+
+    def evaluate(self) -> list[EvalRecord]:
+        """Greedy episodes for every member; one record per member."""
+        self.test_worker.set_weights(self.learner.get_weights())
+        result = self.test_worker.run_round(t_env=self.t_env, greedy=True)
+        per = self.cfg.run.test_episodes
+        has_wins = self.info.has_wins
+        records = []
+        for k in range(self.E):
+            sl = slice(k * per, (k + 1) * per)
+            records.append(
+                EvalRecord(
+                    member=k,
+                    t_env=self.t_env,
+                    episode=self.episodes,
+                    test_return_mean=float(result.returns[sl].mean()),
+                    test_won_mean=float(result.won[sl].mean()) if has_wins else None,
+                    wall_s=self.wall_s,
+                    updates=self.learner.updates,
+                )
+            )
+        return records
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def save(self, path: Path) -> None:
+        """Write learner (networks, targets, optimisers, counters), loop counters and RNG states
+        to `path` atomically: a crash mid-write leaves the previous checkpoint intact. The
+        replay contents are not saved; a resumed run refills its replay."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        torch.save(self.learner.state_dict(), tmp / "learner.pt")
+        state = {
+            "t_env": self.t_env,
+            "episodes": self.episodes,
+            "last_test_t": self.last_test_t,
+            "last_save_t": self.last_save_t,
+            "wall_s": self.wall_s,
+            "torch_rng": torch.get_rng_state(),
+            "worker_rng": self.worker.gen.get_state(),
+            "test_worker_rng": self.test_worker.gen.get_state(),
+            "replay_rng": [r.rng.bit_generator.state for r in self.replays],
+            "episode_seq": self.worker.episode_seq,
+        }
+        torch.save(state, tmp / "trainer.pt")
+        (tmp / "config.yaml").write_text(yaml.safe_dump(self.cfg.to_yaml_dict(), sort_keys=False))
+        old = path.with_name(path.name + ".old")
+        shutil.rmtree(old, ignore_errors=True)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+
+    def restore(self, path: Path) -> None:
+        """Load a checkpoint written by `save` (same config)."""
+        path = Path(path)
+        self.learner.load_state_dict(torch.load(path / "learner.pt", weights_only=False))
+        state = torch.load(path / "trainer.pt", weights_only=False)
+        self.t_env, self.episodes = state["t_env"], state["episodes"]
+        self.last_test_t, self.last_save_t = state["last_test_t"], state["last_save_t"]
+        self.wall_offset = state["wall_s"]
+        self.started = time.monotonic()
+        torch.set_rng_state(state["torch_rng"])
+        self.worker.gen.set_state(state["worker_rng"])
+        self.test_worker.gen.set_state(state["test_worker_rng"])
+        for r, s in zip(self.replays, state["replay_rng"], strict=True):
+            r.rng.bit_generator.state = s
+        self.worker.episode_seq = state["episode_seq"]
+
+
+def write_json(path: Path, obj: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2) + "\n")
+    os.replace(tmp, path)

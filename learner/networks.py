@@ -1,0 +1,183 @@
+"""Networks with a leading ensemble axis E, so several independent seeds train in one call.
+
+Every parameter has shape [E, ...] and every activation [E, M, features]. Members share
+nothing: gradients of a sum of per-member losses are per-member gradients, Adam is
+elementwise, and `clip_grad_norm_per_member` clips each member by its own norm, so E seeds
+trained together follow exactly the updates they would follow apart. E = 1 is a plain run.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class EnsembleLinear(nn.Module):
+    """E independent affine maps. Shapes: x [E, M, in] -> [E, M, out]."""
+
+    def __init__(self, n_ensemble: int, in_features: int, out_features: int):
+        super().__init__()
+        self.in_features, self.out_features = in_features, out_features
+        bound = 1.0 / math.sqrt(in_features)  # nn.Linear's default initialisation range
+        self.weight = nn.Parameter(torch.empty(n_ensemble, in_features, out_features).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(n_ensemble, 1, out_features).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class EnsembleGRUCell(nn.Module):
+    """E independent GRU cells (PyTorch's gate equations). Shapes: x [E, M, in], h [E, M, H]."""
+
+    def __init__(self, n_ensemble: int, in_features: int, hidden: int):
+        super().__init__()
+        self.hidden = hidden
+        self.ih = EnsembleLinear(n_ensemble, in_features, 3 * hidden)
+        self.hh = EnsembleLinear(n_ensemble, hidden, 3 * hidden)
+        bound = 1.0 / math.sqrt(hidden)  # nn.GRUCell initialises every tensor in this range
+        with torch.no_grad():
+            for p in self.parameters():
+                p.uniform_(-bound, bound)
+
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        gi, gh = self.ih(x), self.hh(h)
+        i_r, i_z, i_n = gi.chunk(3, dim=-1)
+        h_r, h_z, h_n = gh.chunk(3, dim=-1)
+        r = torch.sigmoid(i_r + h_r)
+        z = torch.sigmoid(i_z + h_z)
+        n = torch.tanh(i_n + r * h_n)
+        return (1.0 - z) * n + z * h
+
+
+class AgentNet(nn.Module):
+    """The shared DRQN agent: GRU(hidden) -> FC(fc) -> FC(fc) -> n_actions.
+
+    Input per agent: own observation, last action one-hot, agent id one-hot. Parameters are
+    shared by all agents (the agent axis is folded into M). The head gives Q-values for the
+    value family and logits for the policy-gradient family.
+
+    Shapes: inputs [E, M, input_dim], h [E, M, hidden] -> out [E, M, n_actions], h' [E, M, hidden].
+    """
+
+    def __init__(self, n_ensemble: int, input_dim: int, n_actions: int, hidden: int = 64, fc: int = 32):
+        super().__init__()
+        self.hidden = hidden
+        self.gru = EnsembleGRUCell(n_ensemble, input_dim, hidden)
+        self.fc1 = EnsembleLinear(n_ensemble, hidden, fc)
+        self.fc2 = EnsembleLinear(n_ensemble, fc, fc)
+        self.out = EnsembleLinear(n_ensemble, fc, n_actions)
+
+    def init_hidden(self, n_ensemble: int, m: int) -> torch.Tensor:
+        return self.out.weight.new_zeros(n_ensemble, m, self.hidden)
+
+    def forward(self, inputs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.gru(inputs, h)
+        x = F.relu(self.fc1(h))
+        x = F.relu(self.fc2(x))
+        return self.out(x), h
+
+
+class MLP(nn.Module):
+    """ReLU MLP with a linear output, e.g. the central critic 64-64-1.
+
+    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP.
+    """
+
+    def __init__(self, n_ensemble: int, in_features: int, hidden: tuple[int, ...], out_features: int = 1):
+        super().__init__()
+        sizes = [in_features, *hidden, out_features]
+        self.layers = nn.ModuleList(
+            EnsembleLinear(n_ensemble, a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for layer in self.layers[:-1]:
+            x = F.relu(layer(x))
+        return self.layers[-1](x)
+
+    def activations(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Inputs of every layer followed by the output: [x, a1, ..., a_L, y]."""
+        acts = [x]
+        for layer in self.layers[:-1]:
+            x = F.relu(layer(x))
+            acts.append(x)
+        acts.append(self.layers[-1](x))
+        return acts
+
+
+class QMixer(nn.Module):
+    """QMIX's monotonic mixer: hypernetworks map a conditioning vector to non-negative weights.
+
+    Conditioned on the global state (QMIX) or on the joint observation (the seed's QMIX
+    without state). Shapes: qs [E, M, N], cond [E, M, cond_dim] -> q_tot [E, M, 1].
+    """
+
+    def __init__(self, n_ensemble: int, n_agents: int, cond_dim: int, embed: int = 32, hyper_hidden: int = 64):
+        super().__init__()
+        self.n_agents, self.embed = n_agents, embed
+        self.hyper_w1 = MLP(n_ensemble, cond_dim, (hyper_hidden,), n_agents * embed)
+        self.hyper_w2 = MLP(n_ensemble, cond_dim, (hyper_hidden,), embed)
+        self.hyper_b1 = EnsembleLinear(n_ensemble, cond_dim, embed)
+        self.value = MLP(n_ensemble, cond_dim, (embed,), 1)
+
+    def forward(self, qs: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        e, m, n = qs.shape
+        w1 = self.hyper_w1(cond).abs().view(e * m, n, self.embed)
+        b1 = self.hyper_b1(cond).view(e * m, 1, self.embed)
+        hidden = F.elu(torch.bmm(qs.reshape(e * m, 1, n), w1) + b1)
+        w2 = self.hyper_w2(cond).abs().view(e * m, self.embed, 1)
+        q_tot = torch.bmm(hidden, w2).view(e, m, 1)
+        return q_tot + self.value(cond)
+
+
+def clip_grad_norm_per_member(params: list[nn.Parameter], max_norm: float) -> torch.Tensor:
+    """Clip each ensemble member's gradient to `max_norm` by its own global norm.
+
+    Returns the per-member norms before clipping, shape [E].
+    """
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return torch.zeros(0)
+    sq = sum(g.pow(2).reshape(g.shape[0], -1).sum(dim=1) for g in grads)
+    norms = sq.sqrt()
+    scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
+    return norms
+
+
+def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
+    """Run the recurrent agent over whole episodes from a zero hidden state.
+
+    Shapes: inputs [E, B, T', N, D] -> outputs [E, B, T', N, A].
+    """
+    e, b, tp, n, d = inputs.shape
+    h = agent.init_hidden(e, b * n)
+    outs = []
+    for t in range(tp):
+        out, h = agent(inputs[:, :, t].reshape(e, b * n, d), h)
+        outs.append(out.view(e, b, n, -1))
+    return torch.stack(outs, dim=2)
+
+
+@dataclass(frozen=True)
+class VersionedWeights:
+    """The acting policy's parameters as numpy arrays, with a monotonically rising version.
+
+    `arrays` maps AgentNet parameter names to arrays of shape [E, ...].
+    """
+
+    version: int
+    arrays: dict[str, np.ndarray]
+
+    @classmethod
+    def from_module(cls, module: nn.Module, version: int) -> VersionedWeights:
+        return cls(version, {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()})
+
+    def load_into(self, module: nn.Module) -> None:
+        module.load_state_dict({k: torch.as_tensor(v) for k, v in self.arrays.items()})

@@ -1,0 +1,179 @@
+"""RDN, the Relevance Decomposition Network (seed chapter 4, Algorithm 1).
+
+A central critic Q_c(x) over every agent's last `obs_window` observations, current action
+one-hot and id one-hot is trained by TD. Its value for the taken joint action is split into
+per-agent targets by LRP (`learner.lrp`): agent i's target is the relevance summed over its
+own input block, and each agent's Q_i(o_i, u_i) is regressed onto it. The state is never used.
+
+Next action in the critic's TD target (`next_action`):
+* "greedy" (default): each agent's greedy action under the current agent network (the joint
+  action the agents would actually take), which scales to any number of agents;
+* "joint_max": the maximum of the target critic over every joint action, exact centralised
+  Q-learning, only possible when A^N is small (<= `joint_max_limit`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from torch.nn import functional as F
+
+from buffer_service.episode import EpisodeBatch, EpisodeSchema
+from learner.batch import TensorBatch, agent_inputs, masked_mean, obs_history
+from learner.common import AgentConfig, TargetNet, Updater
+from learner.lrp import LRP_RULES, agent_relevance, lrp_epsilon
+from learner.networks import MLP, AgentNet, VersionedWeights, unroll
+from learner.targets import td_targets
+
+
+@dataclass(frozen=True)
+class RDNConfig:
+    """Hyper-parameters of RDN (seed 5.3.3).
+
+    Attributes:
+        gamma: discount.
+        lr: Adam learning rate of the agents and of the critic.
+        grad_norm_clip: per-seed gradient norm clip.
+        target_update_interval: critic updates between hard copies into the target critic.
+        critic_hidden: hidden widths of the central critic MLP.
+        obs_window: how many of each agent's latest observations the critic sees.
+        lrp_rule: relevance rule, one of learner.lrp.LRP_RULES.
+        lrp_eps: ε of the LRP-ε rule.
+        next_action: "greedy" or "joint_max" (module docstring).
+        joint_max_limit: largest joint action space "joint_max" may enumerate.
+        agent: the shared agent network.
+    """
+
+    gamma: float = 0.99
+    lr: float = 5e-4
+    grad_norm_clip: float = 10.0
+    target_update_interval: int = 200
+    critic_hidden: tuple[int, ...] = (64, 64)
+    obs_window: int = 4
+    lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
+    lrp_eps: float = 0.01
+    next_action: Literal["greedy", "joint_max"] = "greedy"
+    joint_max_limit: int = 1024
+    agent: AgentConfig = field(default_factory=AgentConfig)
+
+    def validate(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
+        if self.lr <= 0 or self.grad_norm_clip <= 0 or self.lrp_eps <= 0:
+            raise ValueError("lr, grad_norm_clip and lrp_eps must be > 0")
+        if self.target_update_interval < 1 or self.obs_window < 1:
+            raise ValueError("target_update_interval and obs_window must be >= 1")
+        if not self.critic_hidden or min(self.critic_hidden) < 1:
+            raise ValueError(f"critic_hidden needs at least one positive width, got {self.critic_hidden}")
+        if self.lrp_rule not in LRP_RULES:
+            raise ValueError(f"lrp_rule must be one of {LRP_RULES}")
+
+
+class RDNLearner:
+    """Critic TD update, then agent update toward LRP shares of the updated critic's value.
+
+    Calling loop::
+
+        learner = RDNLearner(cfg, schema, n_ensemble=1)
+        metrics = learner.step(batch)
+    """
+
+    policy_kind = "q"
+
+    def __init__(self, cfg: RDNConfig, info: EpisodeSchema, n_ensemble: int = 1, device: str = "cpu"):
+        self.cfg, self.info, self.n_ensemble, self.device = cfg, info, n_ensemble, device
+        n, a = info.n_agents, info.n_actions
+        if cfg.next_action == "joint_max" and a**n > cfg.joint_max_limit:
+            raise ValueError(
+                f"algo.next_action=joint_max would enumerate {a}^{n} joint actions "
+                f"(> joint_max_limit={cfg.joint_max_limit}); use next_action=greedy"
+            )
+        self.block = cfg.obs_window * info.obs_dim + a + n
+        in_dim = info.obs_dim + a + n
+        self.agent = AgentNet(n_ensemble, in_dim, a, cfg.agent.hidden, cfg.agent.fc).to(device)
+        self.critic = MLP(n_ensemble, n * self.block, tuple(cfg.critic_hidden), 1).to(device)
+        self.target_critic = TargetNet(self.critic, cfg.target_update_interval)
+        self.critic_updater = Updater(list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic")
+        self.agent_updater = Updater(list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent")
+        self.updates = 0
+
+    def critic_inputs(self, hist: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Per-agent blocks [history, action one-hot, id one-hot] laid end to end.
+
+        Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
+        """
+        e, b, tp, n, _ = hist.shape
+        ids = torch.eye(n, device=hist.device).expand(e, b, tp, n, n)
+        x = torch.cat([hist, F.one_hot(actions, self.info.n_actions).float(), ids], dim=-1)
+        return x.reshape(e, b * tp, n * self.block)
+
+    def _next_value(self, hist_next: torch.Tensor, qs_next: torch.Tensor, avail_next: torch.Tensor) -> torch.Tensor:
+        """Target critic value of the next step, [E, B, T]."""
+        e, b, t, n, _ = hist_next.shape
+        critic = self.target_critic.module
+        if self.cfg.next_action == "greedy":
+            greedy = qs_next.masked_fill(~avail_next, -1e10).argmax(-1)
+            return critic(self.critic_inputs(hist_next, greedy)).view(e, b, t)
+        joint = torch.tensor(list(itertools.product(range(self.info.n_actions), repeat=n)), device=self.device)
+        values = []
+        for ja in joint:  # A^N is small here by construction (joint_max_limit)
+            acts = ja.expand(e, b, t, n)
+            allowed = avail_next.gather(-1, acts.unsqueeze(-1)).squeeze(-1).all(-1)
+            v = critic(self.critic_inputs(hist_next, acts)).view(e, b, t)
+            values.append(v.masked_fill(~allowed, -1e10))
+        return torch.stack(values, -1).max(-1).values
+
+    def step(self, batch: EpisodeBatch) -> dict[str, float]:
+        """One RDN update (critic, then agents); returns scalar metrics."""
+        tb = TensorBatch.from_episodes(batch, self.device)
+        e, b, t, n = tb.shape
+        hist = obs_history(tb.obs, self.cfg.obs_window)  # [E, B, T+1, N, W*O]
+        qs = unroll(self.agent, agent_inputs(tb.obs, tb.actions, self.info.n_actions))
+        x = self.critic_inputs(hist[:, :, :-1], tb.actions)
+        with torch.no_grad():
+            v_next = self._next_value(hist[:, :, 1:], qs.detach()[:, :, 1:], tb.avail[:, :, 1:])
+            y = td_targets(tb.reward, tb.terminated, v_next, self.cfg.gamma)
+        q_c = self.critic(x).view(e, b, t)
+        critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
+        self.critic_updater.apply(critic_loss)
+
+        relevance, q_tot = lrp_epsilon(self.critic, x, self.cfg.lrp_eps, self.cfg.lrp_rule)
+        targets = agent_relevance(relevance, n).view(e, b, t, n)
+        chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
+        mask = tb.mask.unsqueeze(-1).expand_as(chosen)
+        agent_loss = masked_mean((chosen - targets).pow(2), mask)
+        self.agent_updater.apply(agent_loss)
+
+        self.updates += 1
+        self.target_critic.maybe_update(self.updates)
+        gap = (targets.sum(-1) - q_tot.view(e, b, t)).abs()
+        return {
+            "loss_critic": float(critic_loss.detach().mean()),
+            "loss_agent": float(agent_loss.detach().mean()),
+            "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), tb.mask).mean()),
+            "lrp_conservation_gap": float(masked_mean(gap, tb.mask).mean()),
+        }
+
+    def get_weights(self) -> VersionedWeights:
+        return VersionedWeights.from_module(self.agent, self.updates)
+
+    def state_dict(self) -> dict:
+        return {
+            "agent": self.agent.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.module.state_dict(),
+            "agent_optimiser": self.agent_updater.optimiser.state_dict(),
+            "critic_optimiser": self.critic_updater.optimiser.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.module.load_state_dict(state["target_critic"])
+        self.agent_updater.optimiser.load_state_dict(state["agent_optimiser"])
+        self.critic_updater.optimiser.load_state_dict(state["critic_optimiser"])
+        self.updates = int(state["updates"])

@@ -1,0 +1,74 @@
+"""The one explicit algorithm registry: name -> (Config, learner factory).
+
+Tests iterate `ALGOS`; nothing registers itself on import.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from buffer_service.episode import EpisodeBatch, EpisodeSchema
+from learner.networks import VersionedWeights
+from learner.rdn import RDNConfig, RDNLearner
+from learner.value import ValueConfig, ValueLearner
+
+
+class Learner(Protocol):
+    """What the trainer needs of an algorithm.
+
+    Calling loop::
+
+        learner = ALGOS[name].build(cfg, schema, n_ensemble, "cpu")
+        for batch in batches:
+            metrics = learner.step(batch)       # dict of scalar losses and diagnostics
+        actors.set_weights(learner.get_weights())
+        torch.save(learner.state_dict(), path)  # networks, targets, optimisers, counters
+    """
+
+    policy_kind: str  # "q" (ε-greedy on Q-values) or "softmax" (sample the policy)
+    updates: int
+
+    def step(self, batch: EpisodeBatch) -> dict[str, float]: ...
+    def get_weights(self) -> VersionedWeights: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@dataclass(frozen=True)
+class AlgoSpec:
+    """A registered algorithm.
+
+    Attributes:
+        name: the `--algo` name.
+        config_cls: its frozen config dataclass (the `algo:` section of a run config).
+        build: `(config, schema, n_ensemble, device) -> Learner`.
+        description: one line for help texts.
+    """
+
+    name: str
+    config_cls: type
+    build: Callable[[Any, EpisodeSchema, int, str], Learner]
+    description: str
+
+
+def _value(mixing: str) -> Callable[[Any, EpisodeSchema, int, str], Learner]:
+    return lambda cfg, schema, e, device: ValueLearner(cfg, schema, mixing, e, device)
+
+
+ALGOS: dict[str, AlgoSpec] = {
+    "iql": AlgoSpec("iql", ValueConfig, _value("none"), "independent Q-learning"),
+    "vdn": AlgoSpec("vdn", ValueConfig, _value("sum"), "value decomposition by sum"),
+    "qmix": AlgoSpec("qmix", ValueConfig, _value("qmix"), "QMIX, mixer conditioned on the state"),
+    "qmix_ns": AlgoSpec("qmix_ns", ValueConfig, _value("qmix_ns"), "QMIX, mixer conditioned on the joint observation"),
+    "rdn": AlgoSpec("rdn", RDNConfig, lambda c, s, e, d: RDNLearner(c, s, e, d), "relevance decomposition network"),
+}
+
+
+def get_algo(name: str) -> AlgoSpec:
+    """Return the spec of `name`; unknown names raise ValueError listing the valid ones."""
+    try:
+        return ALGOS[name]
+    except KeyError:
+        raise ValueError(f"unknown algorithm {name!r}; valid algorithms: {', '.join(sorted(ALGOS))}") from None

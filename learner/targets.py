@@ -1,0 +1,54 @@
+"""Returns and temporal-difference targets as pure functions on [.., T] tensors.
+
+`terminated[t]` is 1 when the environment ended at transition t (not a time-limit cut), so
+bootstrapping stops there; `mask[t]` is 1 on real transitions and 0 on padding.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def td_targets(reward: torch.Tensor, terminated: torch.Tensor, next_value: torch.Tensor, gamma: float) -> torch.Tensor:
+    """One-step targets y_t = r_t + γ (1 - terminated_t) V(s_{t+1}).
+
+    Shapes: reward, terminated, next_value [..., T] (or with a trailing agent axis, broadcast).
+    """
+    return reward + gamma * (1.0 - terminated) * next_value
+
+
+def lambda_returns(
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    mask: torch.Tensor,
+    values: torch.Tensor,
+    gamma: float,
+    lam: float,
+) -> torch.Tensor:
+    """TD(λ) returns G^λ_t, computed backwards.
+
+    G_t = r_t + γ (1 - term_t) [(1 - λ) V_{t+1} + λ G_{t+1}], and at the last real step of an
+    episode that was cut by the time limit G_t = r_t + γ V_{t+1} (bootstrap).
+
+    Args:
+        reward, terminated, mask: [..., T].
+        values: [..., T+1] value estimates of every state including the one after step T-1.
+        gamma, lam: discount and λ.
+    Returns:
+        [..., T]; padded steps hold 0.
+    """
+    t_len = reward.shape[-1]
+    out = torch.zeros_like(reward)
+    # At a padded step the "next return" is the bootstrap value itself, so the last real step
+    # of a cut episode reduces to r + γ V_{t+1}.
+    g_next = values[..., t_len]
+    for t in range(t_len - 1, -1, -1):
+        m = mask[..., t]
+        not_term = 1.0 - terminated[..., t]
+        v_next = values[..., t + 1]
+        nxt_is_real = mask[..., t + 1] if t + 1 < t_len else torch.zeros_like(m)
+        blend = nxt_is_real * ((1.0 - lam) * v_next + lam * g_next) + (1.0 - nxt_is_real) * v_next
+        g = reward[..., t] + gamma * not_term * blend
+        out[..., t] = g * m
+        g_next = torch.where(m > 0, g, g_next)
+    return out

@@ -1,0 +1,164 @@
+"""The value-decomposition family: IQL, VDN, QMIX and QMIX without state.
+
+All four learn the shared DRQN agent by Q-learning on whole episodes; they differ only in
+how the chosen agents' Q-values become the quantity regressed onto the TD target:
+    iql     every agent on its own: Q_i -> r + γ max Q_i'
+    vdn     Q_tot = Σ_i Q_i
+    qmix    Q_tot = mixer(Q, state)           (hypernetworks conditioned on the state)
+    qmix_ns Q_tot = mixer(Q, joint obs)       (the seed's "Qmix_NS": no state, same mixer)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from buffer_service.episode import EpisodeBatch, EpisodeSchema
+from learner.batch import TensorBatch, agent_inputs, joint_obs, masked_mean
+from learner.common import AgentConfig, TargetNet, Updater
+from learner.networks import AgentNet, QMixer, VersionedWeights, unroll
+from learner.targets import td_targets
+
+Mixing = Literal["none", "sum", "qmix", "qmix_ns"]
+
+
+@dataclass(frozen=True)
+class ValueConfig:
+    """Hyper-parameters of IQL, VDN, QMIX and QMIX-nostate (seed 5.3.3 / SMAC paper).
+
+    Attributes:
+        gamma: discount.
+        lr: Adam learning rate.
+        grad_norm_clip: per-seed gradient norm clip.
+        target_update_interval: updates between hard target-network copies.
+        double_q: pick the next action with the online network, evaluate with the target.
+        mixer_embed: QMIX mixing embedding (qmix, qmix_ns only).
+        hypernet_hidden: hidden width of QMIX's hypernetworks (qmix, qmix_ns only).
+        agent: the shared agent network.
+    """
+
+    gamma: float = 0.99
+    lr: float = 5e-4
+    grad_norm_clip: float = 10.0
+    target_update_interval: int = 200
+    double_q: bool = True
+    mixer_embed: int = 32
+    hypernet_hidden: int = 64
+    agent: AgentConfig = field(default_factory=AgentConfig)
+
+    def validate(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.grad_norm_clip <= 0:
+            raise ValueError(f"grad_norm_clip must be > 0, got {self.grad_norm_clip}")
+        if self.target_update_interval < 1:
+            raise ValueError(f"target_update_interval must be >= 1, got {self.target_update_interval}")
+        if self.mixer_embed < 1 or self.hypernet_hidden < 1:
+            raise ValueError("mixer_embed and hypernet_hidden must be >= 1")
+
+
+class ValueLearner:
+    """Q-learning with an optional mixer; see the module docstring.
+
+    Calling loop::
+
+        learner = ValueLearner(cfg, schema, mixing="sum", n_ensemble=1)
+        metrics = learner.step(batch)          # batch: EpisodeBatch [B, ...] or [E, B, ...]
+        weights = learner.get_weights()        # for the actors
+    """
+
+    policy_kind = "q"
+
+    def __init__(self, cfg: ValueConfig, info: EpisodeSchema, mixing: Mixing, n_ensemble: int = 1, device: str = "cpu"):
+        self.cfg, self.info, self.mixing = cfg, info, mixing
+        self.n_ensemble, self.device = n_ensemble, device
+        in_dim = info.obs_dim + info.n_actions + info.n_agents
+        self.agent = AgentNet(n_ensemble, in_dim, info.n_actions, cfg.agent.hidden, cfg.agent.fc).to(device)
+        modules = [self.agent]
+        self.mixer: QMixer | None = None
+        if mixing in ("qmix", "qmix_ns"):
+            cond = info.state_dim if mixing == "qmix" else info.n_agents * info.obs_dim
+            self.mixer = QMixer(n_ensemble, info.n_agents, cond, cfg.mixer_embed, cfg.hypernet_hidden).to(device)
+            modules.append(self.mixer)
+        self.target_agent = TargetNet(self.agent, cfg.target_update_interval)
+        self.target_mixer = TargetNet(self.mixer, cfg.target_update_interval) if self.mixer else None
+        params = [p for m in modules for p in m.parameters()]
+        self.updater = Updater(params, cfg.lr, cfg.grad_norm_clip, name=f"{mixing} TD")
+        self.updates = 0
+
+    def _cond(self, tb: TensorBatch) -> torch.Tensor:
+        return tb.state if self.mixing == "qmix" else joint_obs(tb.obs)
+
+    def _mix(self, mixer: QMixer | None, qs: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """qs [E, B, T, N] -> [E, B, T] (sum for VDN, mixer for QMIX)."""
+        if self.mixing == "sum":
+            return qs.sum(-1)
+        e, b, t, n = qs.shape
+        assert mixer is not None
+        return mixer(qs.reshape(e, b * t, n), cond.reshape(e, b * t, -1)).view(e, b, t)
+
+    def step(self, batch: EpisodeBatch) -> dict[str, float]:
+        """One Q-learning update on a batch of episodes; returns scalar metrics."""
+        tb = TensorBatch.from_episodes(batch, self.device)
+        inputs = agent_inputs(tb.obs, tb.actions, self.info.n_actions)
+        qs = unroll(self.agent, inputs)  # [E, B, T+1, N, A]
+        chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)  # [E, B, T, N]
+        with torch.no_grad():
+            tqs = unroll(self.target_agent.module, inputs)[:, :, 1:]
+            avail_next = tb.avail[:, :, 1:]
+            if self.cfg.double_q:
+                best = qs.detach()[:, :, 1:].masked_fill(~avail_next, -1e10).argmax(-1, keepdim=True)
+                next_q = tqs.gather(-1, best).squeeze(-1)
+            else:
+                next_q = tqs.masked_fill(~avail_next, -1e10).max(-1).values
+        if self.mixing == "none":
+            y = td_targets(tb.reward.unsqueeze(-1), tb.terminated.unsqueeze(-1), next_q, self.cfg.gamma)
+            td = chosen - y
+            loss = masked_mean(td.pow(2), tb.mask.unsqueeze(-1).expand_as(td))
+            q_taken = chosen.mean(-1)
+        else:
+            cond = self._cond(tb)
+            q_tot = self._mix(self.mixer, chosen, cond[:, :, :-1])
+            with torch.no_grad():
+                target_mixer = self.target_mixer.module if self.target_mixer else None
+                next_tot = self._mix(target_mixer, next_q, cond[:, :, 1:])
+                y = td_targets(tb.reward, tb.terminated, next_tot, self.cfg.gamma)
+            td = q_tot - y
+            loss = masked_mean(td.pow(2), tb.mask)
+            q_taken = q_tot
+        norms = self.updater.apply(loss)
+        self.updates += 1
+        self.target_agent.maybe_update(self.updates)
+        if self.target_mixer:
+            self.target_mixer.maybe_update(self.updates)
+        return {
+            "loss_td": float(loss.detach().mean()),
+            "q_taken_mean": float(masked_mean(q_taken.detach(), tb.mask).mean()),
+            "grad_norm": float(norms.mean()),
+        }
+
+    def get_weights(self) -> VersionedWeights:
+        return VersionedWeights.from_module(self.agent, self.updates)
+
+    def state_dict(self) -> dict:
+        return {
+            "agent": self.agent.state_dict(),
+            "mixer": self.mixer.state_dict() if self.mixer else None,
+            "target_agent": self.target_agent.module.state_dict(),
+            "target_mixer": self.target_mixer.module.state_dict() if self.target_mixer else None,
+            "optimiser": self.updater.optimiser.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.target_agent.module.load_state_dict(state["target_agent"])
+        if self.mixer is not None:
+            self.mixer.load_state_dict(state["mixer"])
+            self.target_mixer.module.load_state_dict(state["target_mixer"])
+        self.updater.optimiser.load_state_dict(state["optimiser"])
+        self.updates = int(state["updates"])

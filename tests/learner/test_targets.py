@@ -1,0 +1,50 @@
+"""TD targets and TD(lambda) returns against hand-computed values."""
+
+import pytest
+import torch
+
+from learner.targets import lambda_returns, td_targets
+
+G = 0.9
+
+
+@pytest.mark.parametrize(
+    "reward, terminated, next_value, expected",
+    [
+        ([1.0, 2.0], [0.0, 1.0], [10.0, 5.0], [1 + G * 10, 2.0]),  # terminal: no bootstrap
+        ([0.0, 0.0], [0.0, 0.0], [3.0, 4.0], [G * 3, G * 4]),  # time-limit cut: bootstrap
+        ([-1.0], [1.0], [100.0], [-1.0]),
+    ],
+)
+def test_td_targets(reward, terminated, next_value, expected):
+    y = td_targets(torch.tensor(reward), torch.tensor(terminated), torch.tensor(next_value), G)
+    torch.testing.assert_close(y, torch.tensor(expected))
+
+
+def _lam(reward, terminated, mask, values, lam):
+    args = [torch.tensor([x]) for x in (reward, terminated, mask, values)]
+    return lambda_returns(*args, gamma=G, lam=lam)[0].tolist()
+
+
+def test_lambda_returns_terminal_episode():
+    r, term, mask, v = [1.0, 2.0, 3.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [0.5, 0.6, 0.7, 9.0]
+    # lambda = 1: Monte-Carlo returns; the value after the terminal step is ignored.
+    g2 = 3.0
+    g1 = 2.0 + G * g2
+    g0 = 1.0 + G * g1
+    assert _lam(r, term, mask, v, 1.0) == pytest.approx([g0, g1, g2])
+    # lambda = 0: one-step TD targets.
+    assert _lam(r, term, mask, v, 0.0) == pytest.approx([1 + G * 0.6, 2 + G * 0.7, 3.0])
+    # lambda = 0.5 by hand.
+    h2 = 3.0
+    h1 = 2.0 + G * (0.5 * 0.7 + 0.5 * h2)
+    h0 = 1.0 + G * (0.5 * 0.6 + 0.5 * h1)
+    assert _lam(r, term, mask, v, 0.5) == pytest.approx([h0, h1, h2])
+
+
+def test_lambda_returns_time_limit_cut_and_padding():
+    # Two real steps then padding; the episode was cut (not terminal): bootstrap from V[2].
+    r, term, mask, v = [1.0, 1.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 4.0, 99.0]
+    g1 = 1.0 + G * 4.0
+    g0 = 1.0 + G * (0.2 * 0.0 + 0.8 * g1)
+    assert _lam(r, term, mask, v, 0.8) == pytest.approx([g0, g1, 0.0])
