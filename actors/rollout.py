@@ -64,6 +64,11 @@ class RolloutWorker:
         self.episode_seq = 0
         self.t_env = 0
 
+    def follow(self, version: int) -> None:
+        """Record that the (shared, in-process) agent network now holds `version`; used when
+        the worker acts with the learner's own module instead of a copy."""
+        self.version = version
+
     def set_weights(self, weights: VersionedWeights) -> bool:
         """Adopt `weights` if newer than the current ones; returns whether it did."""
         if weights.version <= self.version:
@@ -103,9 +108,9 @@ class RolloutWorker:
         with torch.no_grad():
             while active.any() and t < limit:
                 obs[:, t], state[:, t], avail[:, t] = venv.get_obs(), venv.get_state(), venv.get_avail_actions()
-                x = torch.cat([torch.from_numpy(obs[:, t]).view(e, m * n, -1), last, ids], -1)
+                x = torch.cat([torch.from_numpy(obs[:, t]).reshape(e, m * n, -1), last, ids], -1)
                 out, h = self.agent(x, h)
-                av = torch.from_numpy(avail[:, t]).view(e, m * n, a).bool()
+                av = torch.from_numpy(avail[:, t]).reshape(e, m * n, a).bool()
                 act = select_actions(out, av, self.kind, eps, greedy, self.gen)
                 last = F.one_hot(act, a).float()
                 acts = act.view(k, n).numpy()

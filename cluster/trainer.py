@@ -24,7 +24,6 @@ from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
 from cluster.run_config import TrainConfig
-from learner.networks import AgentNet
 from learner.registry import Learner, get_algo
 from learner.replay import EpisodeReplay
 
@@ -115,11 +114,10 @@ class LocalTrainer:
         self.last_metrics: dict[str, float] = {}
 
     def _worker(self, venv, seed: int) -> RolloutWorker:
-        a = self.info
-        in_dim = a.obs_shape + a.n_actions + a.n_agents
-        agent_cfg = self.cfg.algo.agent
-        net = AgentNet(self.E, in_dim, a.n_actions, agent_cfg.hidden, agent_cfg.fc)
-        return RolloutWorker(venv, net, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed)
+        # In one process the workers act with the learner's own agent module (no weight copy);
+        # `follow` keeps their policy_version tags right.
+        agent = self.learner.agent
+        return RolloutWorker(venv, agent, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed)
 
     @property
     def wall_s(self) -> float:
@@ -130,7 +128,7 @@ class LocalTrainer:
         run, bs = self.cfg.run, self.cfg.replay.batch_size
         bar = Progress(run.t_max) if progress else None
         while self.t_env < run.t_max:
-            self.worker.set_weights(self.learner.get_weights())
+            self.worker.follow(self.learner.updates)
             result = self.worker.run_round(t_env=self.t_env)
             per = run.num_envs
             for j, ep in enumerate(result.episodes):
@@ -156,7 +154,7 @@ class LocalTrainer:
 
     def evaluate(self) -> list[EvalRecord]:
         """Greedy episodes for every member; one record per member."""
-        self.test_worker.set_weights(self.learner.get_weights())
+        self.test_worker.follow(self.learner.updates)
         result = self.test_worker.run_round(t_env=self.t_env, greedy=True)
         per = self.cfg.run.test_episodes
         has_wins = self.info.has_wins

@@ -62,10 +62,12 @@ class RDNConfig:
     def validate(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
-        if self.lr <= 0 or self.grad_norm_clip <= 0 or self.lrp_eps <= 0:
-            raise ValueError("lr, grad_norm_clip and lrp_eps must be > 0")
-        if self.target_update_interval < 1 or self.obs_window < 1:
-            raise ValueError("target_update_interval and obs_window must be >= 1")
+        for name in ("lr", "grad_norm_clip", "lrp_eps"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("target_update_interval", "obs_window", "joint_max_limit"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.critic_hidden or min(self.critic_hidden) < 1:
             raise ValueError(f"critic_hidden needs at least one positive width, got {self.critic_hidden}")
         if self.lrp_rule not in LRP_RULES:

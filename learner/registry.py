@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.networks import VersionedWeights
+from learner.networks import AgentNet, VersionedWeights
 from learner.rdn import RDNConfig, RDNLearner
 from learner.value import ValueConfig, ValueLearner
 
@@ -28,7 +28,8 @@ class Learner(Protocol):
     """
 
     policy_kind: str  # "q" (ε-greedy on Q-values) or "softmax" (sample the policy)
-    updates: int
+    updates: int  # also the version of the weights get_weights() returns
+    agent: AgentNet  # the acting network; in one process actors may act with it directly
 
     def step(self, batch: EpisodeBatch) -> dict[str, float]: ...
     def get_weights(self) -> VersionedWeights: ...

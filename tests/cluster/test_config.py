@@ -1,0 +1,57 @@
+"""Config loading: shipped YAML layers, overrides, and errors that name the key."""
+
+import pytest
+
+from cluster.config import ConfigError, parse_overrides, read_yaml
+from cluster.run_config import load_train_config
+
+
+def test_shipped_layers_apply_seed_hyper_parameters():
+    cfg = load_train_config("rdn", "matrix/four_game")
+    assert cfg.algo.lr == 5e-4 and cfg.algo.gamma == 0.99 and cfg.algo.target_update_interval == 200
+    assert cfg.algo.critic_hidden == (64, 64) and cfg.algo.obs_window == 4
+    assert cfg.replay.capacity == 200 and cfg.replay.batch_size == 4
+    assert cfg.exploration.epsilon_anneal_time == 2000
+    qmix = load_train_config("qmix", "matrix/two_step")
+    assert qmix.algo.mixer_embed == 32
+
+
+def test_overrides_win_and_are_typed():
+    cfg = load_train_config("vdn", "matrix/two_step", overrides=["algo.lr=0.001", "run.seed=7", "algo.double_q=false"])
+    assert cfg.algo.lr == 0.001 and cfg.run.seed == 7 and cfg.algo.double_q is False
+    assert parse_overrides(["a.b=1", "a.c=x"]) == {"a": {"b": 1, "c": "x"}}
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["algo.lrr=0.1"], "unknown config key algo.lrr; valid keys in algo: gamma, lr"),
+        (["run.t_max=many"], "run.t_max: expected an integer, got 'many'"),
+        (["algo.lr=-1"], "algo: lr must be > 0"),
+        (["replay.batch_size=500"], "batch_size=500 exceeds capacity=200"),
+        (["algo.lrp_rule=magic"], "algo.lrp_rule: 'magic' is not one of"),
+        (["trainer.x=1"], "unknown config section 'trainer'"),
+        (["run.seed"], "--set expects key=value"),
+        (["exploration.epsilon_finish=2"], "epsilon_finish must be in [0, 1]"),
+    ],
+)
+def test_bad_values_name_the_key(overrides, message):
+    with pytest.raises(ConfigError) as e:
+        load_train_config("rdn", "matrix/four_game", overrides=overrides)
+    assert message in str(e.value)
+
+
+def test_unknown_algo_and_env_list_valid_names():
+    with pytest.raises(ConfigError, match="valid algorithms: iql, qmix, qmix_ns, rdn, vdn"):
+        load_train_config("dqn", "matrix/four_game")
+    with pytest.raises(ConfigError, match="env: unknown env 'matrix/five'; valid envs:"):
+        load_train_config("rdn", "matrix/five")
+
+
+def test_broken_yaml_names_file_and_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("algo:\n  lr: 0.1\n  gamma: [0.9\nrun: {}\n")
+    with pytest.raises(ConfigError, match=r"broken YAML in .*bad.yaml, line \d"):
+        read_yaml(bad)
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        read_yaml(tmp_path / "missing.yaml")
