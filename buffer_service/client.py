@@ -143,7 +143,9 @@ class BufferClient:
         Returns:
             EpisodeBatch with obs [B, T+1, N, O], actions [B, T, N], filled [B, T], ...
         """
-        return EpisodeBatch.from_episodes(self.sample_episodes(table, batch_size, timeout_s), pad_to)
+        return EpisodeBatch.from_episodes(
+            self.sample_episodes(table, batch_size, timeout_s), pad_to
+        )
 
     def stats(self) -> dict[str, Any]:
         """Server stats: per-table size/inserts/samples, episodes stored, duplicates."""

@@ -67,7 +67,8 @@ def encode_array(arr: np.ndarray) -> dict[str, Any]:
     """
     if arr.dtype.byteorder == ">":
         arr = arr.astype(arr.dtype.newbyteorder("<"))
-    arr = np.ascontiguousarray(arr)
+    if not arr.flags.c_contiguous:  # (np.ascontiguousarray would turn 0-d into 1-d)
+        arr = arr.copy(order="C")
     dtype = arr.dtype.str
     if dtype not in ALLOWED_DTYPES:
         raise CodecError(f"dtype {dtype} is not in the wire allow-list {sorted(ALLOWED_DTYPES)}")

@@ -141,9 +141,7 @@ class BufferConfig:
 
     def validate(self) -> None:
         if not is_loopback(self.host) and not self.token:
-            raise ValueError(
-                f"host {self.host!r} is not loopback: a token is required to bind it"
-            )
+            raise ValueError(f"host {self.host!r} is not loopback: a token is required to bind it")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port {self.port} outside 0..65535")
         if not self.tables:

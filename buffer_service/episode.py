@@ -66,7 +66,9 @@ class EpisodeSchema:
     def from_dict(cls, d: dict) -> EpisodeSchema:
         names = {f.name for f in fields(cls)}
         if set(d) != names:
-            raise EpisodeError(f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}")
+            raise EpisodeError(
+                f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}"
+            )
         return cls(**{k: int(d[k]) for k in names})
 
 
@@ -113,7 +115,9 @@ class Episode:
             if not isinstance(arr, np.ndarray):
                 raise EpisodeError(f"field {name!r} is {type(arr).__name__}, not a numpy array")
             if arr.dtype != EPISODE_DTYPES[name]:
-                raise EpisodeError(f"field {name!r} has dtype {arr.dtype}, expected {EPISODE_DTYPES[name]}")
+                raise EpisodeError(
+                    f"field {name!r} has dtype {arr.dtype}, expected {EPISODE_DTYPES[name]}"
+                )
             if arr.shape != shape:
                 raise EpisodeError(f"field {name!r} has shape {arr.shape}, expected {shape}")
         for name in ("obs", "state", "reward"):
@@ -173,7 +177,10 @@ class EpisodeBatch:
             for name in EPISODE_ARRAYS:
                 arr = getattr(ep, name)
                 out[name][i, : arr.shape[0]] = arr
-        scal = {k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64) for k in EPISODE_SCALARS}
+        scal = {
+            k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64)
+            for k in EPISODE_SCALARS
+        }
         return cls(**out, **scal)
 
     @classmethod
@@ -196,7 +203,13 @@ class EpisodeBatch:
             if f.name in EPISODE_SCALARS:
                 out[f.name] = arr
                 continue
-            axis = arr.ndim - (3 if f.name in ("obs", "avail_actions") else 2 if f.name in ("state", "actions") else 1)
+            axis = arr.ndim - (
+                3
+                if f.name in ("obs", "avail_actions")
+                else 2
+                if f.name in ("state", "actions")
+                else 1
+            )
             width = [(0, 0)] * arr.ndim
             width[axis] = (0, extra)
             padded = np.pad(arr, width)

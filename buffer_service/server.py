@@ -112,7 +112,7 @@ class BufferServer:
         self._conns.add(task)
         try:
             await self._serve_connection(reader, writer)
-        except (ConnectionError, asyncio.IncompleteReadError, asyncio.TimeoutError):
+        except (TimeoutError, ConnectionError, asyncio.IncompleteReadError):
             pass
         except asyncio.CancelledError:
             pass
@@ -161,7 +161,8 @@ class BufferServer:
             raise RequestError("bad_frame", str(e)) from None
         if msg.get("v") != PROTOCOL_VERSION:
             raise RequestError(
-                "bad_version", f"protocol version {msg.get('v')!r}, server speaks {PROTOCOL_VERSION}"
+                "bad_version",
+                f"protocol version {msg.get('v')!r}, server speaks {PROTOCOL_VERSION}",
             )
         op = msg.get("op")
         if op == "hello":
@@ -298,7 +299,7 @@ class BufferServer:
                 return
             try:
                 await asyncio.wait_for(self._changed.wait_for(ready), timeout)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 raise RequestError(
                     "rate_limited", f"{what}: rate limiter did not allow it within {timeout:g} s"
                 ) from None
@@ -397,3 +398,38 @@ def start_server_thread(cfg: BufferConfig) -> ServerThread:
         The running `ServerThread`; call ``.stop()`` to shut it down.
     """
     return ServerThread(cfg).start()
+
+
+def run(cfg: BufferConfig, port_file: str | None = None) -> None:
+    """Serve in the foreground until SIGINT/SIGTERM (the `credit buffer serve` body).
+
+    Args:
+        cfg: the server config.
+        port_file: once listening, atomically write ``{"host", "port", "metrics_port",
+            "pid"}`` as JSON here (how a launcher learns a port picked with port 0).
+    """
+    asyncio.run(_run_main(cfg, port_file))
+
+
+async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
+    import json
+    import signal
+
+    server = BufferServer(cfg)
+    await server.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if port_file:
+        info = {"host": cfg.host, "port": server.port, "metrics_port": server.metrics_port}
+        info["pid"] = os.getpid()
+        tmp = f"{port_file}.tmp"
+        with open(tmp, "w") as f:
+            json.dump(info, f)
+        os.replace(tmp, port_file)
+    try:
+        await stop.wait()
+    finally:
+        log.info("buffer service shutting down")
+        await server.close()

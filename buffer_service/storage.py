@@ -23,6 +23,7 @@ renamed, so a crash while snapshotting leaves the previous generation intact.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -205,10 +206,8 @@ class Storage:
         self.fd = new_fd
         self.records_since_snapshot = 0
         for kind in ("log", "snapshot"):
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.remove(self._path(kind, old))
-            except FileNotFoundError:
-                pass
         log.info("snapshot %s: %d episodes", final, len(state.episodes))
         return final
 
