@@ -184,7 +184,7 @@ class BufferClient:
             yield chunk
 
     def _request(self, msg: dict[str, Any], extra_timeout: float | None = None) -> dict[str, Any]:
-        body = codec.pack({**msg, "v": PROTOCOL_VERSION})
+        body = codec.pack_parts({**msg, "v": PROTOCOL_VERSION})
         delay = self.backoff_s
         with self._lock:
             for attempt in range(self.max_retries + 1):
@@ -215,7 +215,7 @@ class BufferClient:
         if self.schema is not None:
             hello["schema"] = self.schema.to_dict()
         try:
-            reply = self._exchange(codec.pack(hello), self.request_timeout_s)
+            reply = self._exchange(codec.pack_parts(hello), self.request_timeout_s)
         except BaseException:
             self._drop()
             raise
@@ -232,12 +232,15 @@ class BufferClient:
             finally:
                 self._sock = None
 
-    def _exchange(self, body: bytes, timeout: float) -> dict[str, Any]:
+    def _exchange(self, parts: list[bytes | memoryview], timeout: float) -> dict[str, Any]:
         sock = self._sock
         assert sock is not None
         sock.settimeout(timeout)
-        sock.sendall(codec.frame(body))
-        sock.sendall(body)
+        views = [memoryview(p).cast("B") for p in parts]
+        size = sum(v.nbytes for v in views)
+        if size > self.server_max_frame:
+            raise ValueError(f"request of {size} bytes exceeds the server's max frame")
+        _send_parts(sock, [memoryview(codec.FRAME_HEADER.pack(size)), *views])
         head = self._recv_exact(codec.FRAME_HEADER.size)
         (length,) = codec.FRAME_HEADER.unpack(head)
         if length > self.max_frame_bytes:
@@ -265,3 +268,18 @@ class BufferClient:
                 raise _TransportError("connection closed by the server")
             got += k
         return buf
+
+
+def _send_parts(sock: socket.socket, views: list[memoryview]) -> None:
+    """sendall over several buffers without joining them (scatter-gather sendmsg)."""
+    views = [v for v in views if v.nbytes]
+    while views:
+        sent = sock.sendmsg(views[:256])
+        while sent:
+            n = views[0].nbytes
+            if sent >= n:
+                sent -= n
+                views.pop(0)
+            else:
+                views[0] = views[0][sent:]
+                sent = 0

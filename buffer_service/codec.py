@@ -10,9 +10,10 @@ every reply carries ``ok`` (bool) and, when ``ok`` is false, ``error`` (a short 
 "data": <msgpack bin>}``: the dtype string must be in `ALLOWED_DTYPES` and
 ``prod(shape) * itemsize == len(data)``, otherwise decoding raises `CodecError`.
 
-Zero-copy where the libraries allow it: encoding hands msgpack a memoryview of the array
-(one copy, into the packed frame) and decoding wraps the unpacked ``bytes`` with
-``np.frombuffer`` (one copy, msgpack's own), so decoded arrays are read-only.
+Zero-copy: `buffer_service.wire` encodes array data as references (the socket or one join
+copies them once) and decodes bins as memoryview slices of the received frame, which
+``np.frombuffer`` wraps without copying; decoded arrays therefore alias the frame buffer
+(read-only when it is ``bytes``). `own` copies an episode out when that matters.
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ import math
 import struct
 from typing import Any
 
-import msgpack
 import numpy as np
 
+from buffer_service import wire
 from buffer_service.episode import EPISODE_ARRAYS, EPISODE_DTYPES, EPISODE_SCALARS, Episode
 
 PROTOCOL_VERSION = 1
@@ -95,13 +96,12 @@ def decode_array(obj: Any, name: str = "array") -> np.ndarray:
         raise CodecError(f"{name}: shape must be a list of at most {MAX_NDIM} ints")
     if not all(type(d) is int and 0 <= d < 2**40 for d in shape):
         raise CodecError(f"{name}: shape {shape!r} must hold non-negative ints")
-    if not isinstance(data, bytes):
+    if not isinstance(data, (bytes, memoryview)):
         raise CodecError(f"{name}: data must be msgpack bin")
     dt = np.dtype(dtype)
-    if math.prod(shape) * dt.itemsize != len(data):
-        raise CodecError(
-            f"{name}: shape {shape} x itemsize {dt.itemsize} != {len(data)} data bytes"
-        )
+    nbytes = data.nbytes if isinstance(data, memoryview) else len(data)
+    if math.prod(shape) * dt.itemsize != nbytes:
+        raise CodecError(f"{name}: shape {shape} x itemsize {dt.itemsize} != {nbytes} data bytes")
     arr = np.frombuffer(data, dtype=dt).reshape(shape)
     if dt == np.bool_ and arr.size and int(arr.view(np.uint8).max()) > 1:
         raise CodecError(f"{name}: bool data holds bytes other than 0 and 1")
@@ -140,28 +140,49 @@ def episode_from_wire(obj: Any) -> Episode:
 
 
 def pack(msg: dict[str, Any]) -> bytes:
-    """msgpack body of one frame (without the length prefix)."""
-    return msgpack.packb(msg, use_bin_type=True)
+    """msgpack body of one frame (without the length prefix), as one buffer."""
+    return wire.encode(msg)
+
+
+def pack_parts(msg: dict[str, Any]) -> list[bytes | memoryview]:
+    """msgpack body of one frame as buffers that reference large array data (no copy)."""
+    return wire.encode_parts(msg)
+
+
+def pack_contiguous(msg: dict[str, Any]) -> np.ndarray:
+    """msgpack body of one frame in one fresh uint8 buffer: each array byte copied once.
+
+    Same bytes as `pack`; copies through numpy (no zero-fill, no intermediate bytes).
+    """
+    parts = wire.encode_parts(msg)
+    views = [np.frombuffer(p, np.uint8) for p in parts]
+    out = np.empty(sum(v.size for v in views), np.uint8)
+    pos = 0
+    for v in views:
+        out[pos : pos + v.size] = v
+        pos += v.size
+    return out
 
 
 def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Parse one frame body into a map; raise CodecError on anything else.
 
-    Limits keep a hostile body from expanding: map keys must be strings, and the nesting
-    and container sizes are bounded by the body length itself.
+    Bins come back as memoryview slices of `body` (no copy). Hostile bodies cannot
+    expand: container sizes are bounded by the bytes left and nesting by wire.MAX_DEPTH.
     """
     try:
-        msg = msgpack.unpackb(
-            body,
-            raw=False,
-            use_list=True,
-            strict_map_key=True,
-        )
-    except Exception as e:  # msgpack raises several unrelated types on garbage
-        raise CodecError(f"not a msgpack frame: {type(e).__name__}: {e}") from None
+        msg = wire.decode(body)
+    except wire.WireError as e:
+        raise CodecError(f"not a msgpack frame: {e}") from None
     if not isinstance(msg, dict):
         raise CodecError(f"frame must be a msgpack map, got {type(msg).__name__}")
     return msg
+
+
+def own(ep: Episode) -> Episode:
+    """A copy of `ep` whose arrays own their memory (not views of a received frame)."""
+    arrays = {name: np.array(getattr(ep, name)) for name in EPISODE_ARRAYS}
+    return Episode(**arrays, **{name: getattr(ep, name) for name in EPISODE_SCALARS})
 
 
 def frame(body: bytes) -> bytes:

@@ -149,9 +149,9 @@ class BufferServer:
         return codec.error_reply(code, message)
 
     async def _reply(self, writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
-        body = codec.pack(reply)
-        writer.write(codec.frame(body))
-        writer.write(body)
+        parts = codec.pack_parts(reply)
+        size = sum(memoryview(p).nbytes for p in parts)
+        writer.writelines([codec.FRAME_HEADER.pack(size), *parts])
         await writer.drain()
 
     async def _dispatch(self, body: bytes, conn: dict[str, Any]) -> dict[str, Any]:

@@ -136,7 +136,7 @@ class Storage:
         state.episodes = {}
         for kind, _meta, body in records[1:-1]:
             if kind == EPISODE:
-                ep = codec.episode_from_wire(codec.unpack(body))
+                ep = codec.own(codec.episode_from_wire(codec.unpack(body)))
                 state.episodes[ep.key] = ep
         state.load_header(records[0][1])
         state.rebuild_refs()
@@ -151,7 +151,7 @@ class Storage:
             if kind == INSERT:
                 msg = codec.unpack(body)
                 for wire in msg["episodes"]:
-                    state.insert(codec.episode_from_wire(wire), meta["tables"])
+                    state.insert(codec.own(codec.episode_from_wire(wire)), meta["tables"])
             elif kind == SAMPLE:
                 if meta["table"] in state.tables:
                     state.apply_sample(meta["table"], [tuple(k) for k in meta["keys"]])

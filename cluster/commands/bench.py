@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-BENCHES: list = []
+from cluster.bench import codec as codec_bench
+
+BENCHES: list = [codec_bench]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
