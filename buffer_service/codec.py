@@ -22,6 +22,7 @@ import math
 import struct
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from buffer_service import wire
@@ -30,6 +31,7 @@ from buffer_service.episode import EPISODE_ARRAYS, EPISODE_DTYPES, EPISODE_SCALA
 PROTOCOL_VERSION = 1
 FRAME_HEADER = struct.Struct(">I")
 MAX_NDIM = 8
+ZERO_COPY_MIN = 4 * 2**20  # frames this large are decoded without copying array data
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 # Explicit byte order in every dtype string, so a big-endian peer cannot be misread.
@@ -167,13 +169,18 @@ def pack_contiguous(msg: dict[str, Any]) -> np.ndarray:
 def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Parse one frame body into a map; raise CodecError on anything else.
 
-    Bins come back as memoryview slices of `body` (no copy). Hostile bodies cannot
-    expand: container sizes are bounded by the bytes left and nesting by wire.MAX_DEPTH.
+    Frames of at least ZERO_COPY_MIN bytes are parsed by `wire.decode`, whose bins are
+    memoryview slices of `body` (no copy); smaller ones by the msgpack C library (bins
+    copied into bytes, cheap at that size, and much less per-item overhead). Hostile bodies
+    cannot expand either way: container sizes are bounded by the bytes left.
     """
     try:
-        msg = wire.decode(body)
-    except wire.WireError as e:
-        raise CodecError(f"not a msgpack frame: {e}") from None
+        if memoryview(body).nbytes >= ZERO_COPY_MIN:
+            msg = wire.decode(body)
+        else:  # small frames: the C library is faster and the copies are cheap
+            msg = msgpack.unpackb(body, raw=False, strict_map_key=True)
+    except Exception as e:  # msgpack raises several unrelated types on garbage
+        raise CodecError(f"not a msgpack frame: {type(e).__name__}: {e}") from None
     if not isinstance(msg, dict):
         raise CodecError(f"frame must be a msgpack map, got {type(msg).__name__}")
     return msg

@@ -97,3 +97,12 @@ def test_error_reply_codes_are_known():
     with pytest.raises(AssertionError):
         codec.error_reply("no_such_code", "x")
     assert codec.error_reply("auth", "m")["ok"] is False
+
+
+def test_large_frames_decode_without_copying():
+    big = np.arange(codec.ZERO_COPY_MIN // 4 + 10, dtype=np.float32)
+    body = codec.pack({"a": codec.encode_array(big)})
+    assert codec.pack_contiguous({"a": codec.encode_array(big)}).tobytes() == body
+    back = codec.decode_array(codec.unpack(body)["a"])
+    np.testing.assert_array_equal(back, big)
+    assert np.shares_memory(back, np.frombuffer(body, np.uint8))  # a view of the frame
