@@ -66,7 +66,9 @@ class EpisodeSchema:
     def from_dict(cls, d: dict) -> EpisodeSchema:
         names = {f.name for f in fields(cls)}
         if set(d) != names:
-            raise EpisodeError(f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}")
+            raise EpisodeError(
+                f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}"
+            )
         return cls(**{k: int(d[k]) for k in names})
 
 
@@ -113,7 +115,9 @@ class Episode:
             if not isinstance(arr, np.ndarray):
                 raise EpisodeError(f"field {name!r} is {type(arr).__name__}, not a numpy array")
             if arr.dtype != EPISODE_DTYPES[name]:
-                raise EpisodeError(f"field {name!r} has dtype {arr.dtype}, expected {EPISODE_DTYPES[name]}")
+                raise EpisodeError(
+                    f"field {name!r} has dtype {arr.dtype}, expected {EPISODE_DTYPES[name]}"
+                )
             if arr.shape != shape:
                 raise EpisodeError(f"field {name!r} has shape {arr.shape}, expected {shape}")
         for name in ("obs", "state", "reward"):
@@ -199,7 +203,13 @@ class EpisodeBatch:
             if f.name in EPISODE_SCALARS:
                 out[f.name] = arr
                 continue
-            axis = arr.ndim - (3 if f.name in ("obs", "avail_actions") else 2 if f.name in ("state", "actions") else 1)
+            axis = arr.ndim - (
+                3
+                if f.name in ("obs", "avail_actions")
+                else 2
+                if f.name in ("state", "actions")
+                else 1
+            )
             width = [(0, 0)] * arr.ndim
             width[axis] = (0, extra)
             padded = np.pad(arr, width)

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import argparse
 
-BENCHES: list = []
+from cluster.bench import codec as codec_bench
+from cluster.bench import service as service_bench
+
+BENCHES: list = [codec_bench, service_bench]
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,0 +1,176 @@
+"""Frozen configs of the buffer service: one per table and one for the server."""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from buffer_service.episode import EpisodeSchema
+
+TABLE_KINDS = ("cycling", "replay")
+
+
+@dataclass(frozen=True)
+class RateLimiterConfig:
+    """Reverb-style SampleToInsertRatio limiter of one table.
+
+    With ``diff = inserts * samples_per_insert - samples`` (totals since the table was
+    created; one sampled episode counts one sample), ``offset = samples_per_insert *
+    min_size_to_sample``, a sample of n episodes may proceed when the table holds at least
+    ``min_size_to_sample`` episodes and ``diff - n >= offset - error_buffer``; an insert may
+    proceed while fewer than ``min_size_to_sample`` episodes were ever inserted or
+    ``diff + samples_per_insert <= offset + error_buffer``. ``samples_per_insert = 0`` turns
+    the ratio off (a plain MinSize limiter).
+
+    Attributes:
+        min_size_to_sample: episodes the table must hold before any sample.
+        samples_per_insert: target sampled episodes per inserted episode (0 = no ratio).
+        error_buffer: slack around the target, in samples (must be >= samples_per_insert
+            when the ratio is on, or nothing could ever proceed).
+    """
+
+    min_size_to_sample: int = 1
+    samples_per_insert: float = 0.0
+    error_buffer: float = math.inf
+
+    def validate(self) -> None:
+        if self.min_size_to_sample < 1:
+            raise ValueError("rate_limiter.min_size_to_sample must be >= 1")
+        if self.samples_per_insert < 0:
+            raise ValueError("rate_limiter.samples_per_insert must be >= 0")
+        if self.samples_per_insert > 0 and self.error_buffer < self.samples_per_insert:
+            raise ValueError("rate_limiter.error_buffer must be >= samples_per_insert")
+
+
+@dataclass(frozen=True)
+class TableConfig:
+    """One table of the buffer.
+
+    Attributes:
+        name: table name clients sample from.
+        kind: ``cycling`` (FIFO; each episode sampled at most ``max_times_sampled`` times,
+            then removed; a batch never repeats an episode) or ``replay`` (uniform with
+            replacement).
+        capacity: episodes held; the oldest is dropped on overflow (both kinds).
+        max_times_sampled: K for ``cycling`` (0 = unlimited); ignored for ``replay``.
+        rate_limiter: sample/insert back-pressure of this table.
+    """
+
+    name: str = "cycling"
+    kind: str = "cycling"
+    capacity: int = 32
+    max_times_sampled: int = 8
+    rate_limiter: RateLimiterConfig = field(default_factory=RateLimiterConfig)
+
+    def validate(self) -> None:
+        if not self.name or not self.name.isidentifier():
+            raise ValueError(f"table.name {self.name!r} must be a non-empty identifier")
+        if self.kind not in TABLE_KINDS:
+            raise ValueError(f"table.kind {self.kind!r} must be one of {TABLE_KINDS}")
+        if self.capacity < 1:
+            raise ValueError(f"table.capacity must be >= 1 (table {self.name})")
+        if self.max_times_sampled < 0:
+            raise ValueError(f"table.max_times_sampled must be >= 0 (table {self.name})")
+        self.rate_limiter.validate()
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TableConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"table config has unknown keys {sorted(unknown)}")
+        d = dict(d)
+        if isinstance(d.get("rate_limiter"), dict):
+            d["rate_limiter"] = RateLimiterConfig(**d["rate_limiter"])
+        return cls(**d)
+
+
+def default_tables() -> tuple[TableConfig, ...]:
+    """EM-CAC's pair: a 32-episode cycling buffer (K = 8) and a 5000-episode replay."""
+    return (
+        TableConfig(name="cycling", kind="cycling", capacity=32, max_times_sampled=8),
+        TableConfig(name="replay", kind="replay", capacity=5000),
+    )
+
+
+@dataclass(frozen=True)
+class BufferConfig:
+    """The buffer server.
+
+    Attributes:
+        host: bind address; anything but a loopback address requires ``token``.
+        port: TCP port (0 = pick a free one; the server reports it).
+        token: shared secret checked in hello (None = no auth, loopback only).
+        tables: the tables; an insert naming no tables goes to all of them.
+        schema: episode sizes; None = learned from the first hello that carries one.
+        max_frame_bytes: largest request frame accepted; refused from its length prefix.
+        snapshot_dir: where the log and snapshots live (None = in memory only, no
+            durability).
+        fsync: fsync the log before acknowledging an insert (False survives a kill -9 of
+            the service, because written data sits in the OS page cache, but not a power
+            loss or kernel crash).
+        snapshot_every_inserts: write a snapshot (and truncate the log) after this many
+            logged insert requests (0 = only on the snapshot op and on shutdown).
+        sample_timeout_s: longest a sample waits for the rate limiter (requests may ask
+            for less).
+        insert_timeout_s: longest an insert waits for the rate limiter.
+        read_timeout_s: a started frame must arrive completely within this time.
+        max_connections: concurrent connections; further ones are closed at once.
+        dedup_window: per actor, how many episode_seq values are remembered exactly; seqs
+            further behind the actor's window are treated as already inserted.
+        metrics_port: Prometheus HTTP port on 127.0.0.1 (None = no exporter, 0 = any).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 0
+    token: str | None = None
+    tables: tuple[TableConfig, ...] = field(default_factory=default_tables)
+    schema: EpisodeSchema | None = None
+    max_frame_bytes: int = 64 * 2**20
+    snapshot_dir: str | None = None
+    fsync: bool = True
+    snapshot_every_inserts: int = 10_000
+    sample_timeout_s: float = 30.0
+    insert_timeout_s: float = 30.0
+    read_timeout_s: float = 30.0
+    max_connections: int = 256
+    dedup_window: int = 1 << 16
+    metrics_port: int | None = None
+
+    def validate(self) -> None:
+        if not is_loopback(self.host) and not self.token:
+            raise ValueError(f"host {self.host!r} is not loopback: a token is required to bind it")
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port {self.port} outside 0..65535")
+        if not self.tables:
+            raise ValueError("tables must name at least one table")
+        names = [t.name for t in self.tables]
+        if len(set(names)) != len(names):
+            raise ValueError(f"tables has duplicate names {names}")
+        for t in self.tables:
+            t.validate()
+        if self.max_frame_bytes < 1024:
+            raise ValueError("max_frame_bytes must be >= 1024")
+        for name in ("sample_timeout_s", "insert_timeout_s", "read_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        if self.snapshot_every_inserts < 0:
+            raise ValueError("snapshot_every_inserts must be >= 0")
+        if self.max_connections < 1:
+            raise ValueError("max_connections must be >= 1")
+        if self.dedup_window < 16:
+            raise ValueError("dedup_window must be >= 16")
+        if self.metrics_port is not None and not 0 <= self.metrics_port <= 65535:
+            raise ValueError(f"metrics_port {self.metrics_port} outside 0..65535")
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -1,0 +1,435 @@
+"""The buffer service: an asyncio TCP server of whole episodes (DESIGN.md §4).
+
+One event loop owns all state, so request handling needs no locks; the only blocking
+calls on it are the log write (+ fsync) of an insert and snapshot writes, which is what
+makes "acknowledged means durable" hold (see `buffer_service.storage` for the guarantee).
+
+Ops (request fields -> reply fields; every reply has ``ok``):
+
+* ``hello``  {token, schema?} -> {v, schema, tables, max_frame_bytes}. Required first.
+* ``insert`` {episodes: [episode], tables?: [name]} -> {inserted, duplicates}.
+  All-or-nothing validation; duplicates of ``(actor_id, episode_seq)`` are acknowledged
+  and not stored again.
+* ``sample`` {table, batch_size, timeout_s?} -> {episodes: [episode]}; waits for the rate
+  limiter, then ``rate_limited``.
+* ``stats``  {} -> {stats}.   * ``snapshot`` {} -> {path}.
+
+Errors reply ``{ok: false, error, message}``; ``frame_too_large``, ``bad_version``,
+``auth`` and ``hello_required`` also close the connection. Other clients never notice.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import logging
+import os
+import random
+import threading
+from typing import Any
+
+from buffer_service import codec
+from buffer_service.codec import PROTOCOL_VERSION, CodecError
+from buffer_service.config import BufferConfig
+from buffer_service.episode import Episode, EpisodeError, EpisodeSchema
+from buffer_service.metrics import BufferMetrics
+from buffer_service.state import BufferState
+from buffer_service.storage import Storage
+
+log = logging.getLogger(__name__)
+
+CLOSING_ERRORS = frozenset({"frame_too_large", "bad_version", "auth", "hello_required"})
+
+
+class RequestError(Exception):
+    """A refused request: becomes an error reply with `code`."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class BufferServer:
+    """The service on the current event loop: ``await start()``, then ``await close()``.
+
+    Args:
+        cfg: validated on construction (ValueError names the bad field, e.g. a
+            non-loopback host without a token).
+    """
+
+    def __init__(self, cfg: BufferConfig) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self.state = BufferState(cfg)
+        self.storage = Storage(cfg.snapshot_dir, cfg.fsync) if cfg.snapshot_dir else None
+        self.metrics = BufferMetrics(list(self.state.tables))
+        self.rng = random.Random(int.from_bytes(os.urandom(8), "little"))
+        self.port = 0
+        self.metrics_port: int | None = None
+        self._server: asyncio.base_events.Server | None = None
+        self._changed: asyncio.Condition | None = None
+        self._conns: set[asyncio.Task] = set()
+
+    async def start(self) -> None:
+        """Restore from the snapshot dir, bind, and start accepting connections."""
+        if self.storage is not None:
+            self.storage.restore(self.state)
+        self._update_sizes()
+        self._changed = asyncio.Condition()
+        self._server = await asyncio.start_server(
+            self._on_connect, self.cfg.host, self.cfg.port, limit=2**16
+        )
+        self.port = int(self._server.sockets[0].getsockname()[1])
+        if self.cfg.metrics_port is not None:
+            self.metrics_port = self.metrics.start_exporter(self.cfg.metrics_port)
+        log.info("buffer service listening on %s:%d", self.cfg.host, self.port)
+
+    async def close(self, snapshot: bool = True) -> None:
+        """Stop accepting, drop connections, write a final snapshot (if durable)."""
+        if self._server is not None:
+            self._server.close()
+        for task in list(self._conns):
+            task.cancel()
+        if self._conns:
+            await asyncio.gather(*self._conns, return_exceptions=True)
+        if self._server is not None:
+            await self._server.wait_closed()
+        if self.storage is not None:
+            if snapshot:
+                self.storage.snapshot(self.state)
+            self.storage.close()
+        self.metrics.stop_exporter()
+
+    # ---------------------------------------------------------------- connections
+
+    async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+        task = asyncio.current_task()
+        if len(self._conns) >= self.cfg.max_connections:
+            self.metrics.rejected.labels(reason="max_connections").inc()
+            writer.close()
+            return
+        self._conns.add(task)
+        try:
+            await self._serve_connection(reader, writer)
+        except (TimeoutError, ConnectionError, asyncio.IncompleteReadError):
+            pass
+        except asyncio.CancelledError:
+            pass
+        except Exception:
+            log.exception("buffer connection handler failed")
+        finally:
+            self._conns.discard(task)
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+
+    async def _serve_connection(self, reader, writer) -> None:
+        conn: dict[str, Any] = {"hello": False}
+        while True:
+            head = await reader.readexactly(codec.FRAME_HEADER.size)
+            (length,) = codec.FRAME_HEADER.unpack(head)
+            if length > self.cfg.max_frame_bytes:
+                msg = f"frame of {length} bytes exceeds max_frame_bytes={self.cfg.max_frame_bytes}"
+                await self._reply(writer, self._error("frame_too_large", msg))
+                return
+            body = await asyncio.wait_for(reader.readexactly(length), self.cfg.read_timeout_s)
+            try:
+                reply = await self._dispatch(body, conn)
+            except RequestError as e:
+                await self._reply(writer, self._error(e.code, str(e)))
+                if e.code in CLOSING_ERRORS:
+                    return
+                continue
+            await self._reply(writer, reply)
+
+    def _error(self, code: str, message: str) -> dict[str, Any]:
+        self.metrics.rejected.labels(reason=code).inc()
+        log.debug("refused request: %s: %s", code, message)
+        return codec.error_reply(code, message)
+
+    async def _reply(self, writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
+        parts = codec.pack_parts(reply)
+        size = sum(memoryview(p).nbytes for p in parts)
+        writer.writelines([codec.FRAME_HEADER.pack(size), *parts])
+        await writer.drain()
+
+    async def _dispatch(self, body: bytes, conn: dict[str, Any]) -> dict[str, Any]:
+        try:
+            msg = codec.unpack(body)
+        except CodecError as e:
+            raise RequestError("bad_frame", str(e)) from None
+        if msg.get("v") != PROTOCOL_VERSION:
+            raise RequestError(
+                "bad_version",
+                f"protocol version {msg.get('v')!r}, server speaks {PROTOCOL_VERSION}",
+            )
+        op = msg.get("op")
+        if op == "hello":
+            return self._op_hello(msg, conn)
+        if not conn["hello"]:
+            raise RequestError("hello_required", f"op {op!r} before a successful hello")
+        if op == "insert":
+            return await self._op_insert(msg, body)
+        if op == "sample":
+            return await self._op_sample(msg)
+        if op == "stats":
+            return self._ok(stats=self.stats())
+        if op == "snapshot":
+            if self.storage is None:
+                raise RequestError("bad_request", "server has no snapshot_dir")
+            return self._ok(path=self.storage.snapshot(self.state))
+        raise RequestError("unknown_op", f"unknown op {op!r}")
+
+    @staticmethod
+    def _ok(**fields: Any) -> dict[str, Any]:
+        return {"ok": True, "v": PROTOCOL_VERSION, **fields}
+
+    # ---------------------------------------------------------------- ops
+
+    def _op_hello(self, msg: dict[str, Any], conn: dict[str, Any]) -> dict[str, Any]:
+        token = msg.get("token")
+        if self.cfg.token is not None and not (
+            isinstance(token, str) and hmac.compare_digest(token.encode(), self.cfg.token.encode())
+        ):
+            raise RequestError("auth", "wrong or missing token")
+        raw = msg.get("schema")
+        if raw is not None:
+            try:
+                schema = EpisodeSchema.from_dict(raw) if isinstance(raw, dict) else None
+            except (EpisodeError, TypeError, ValueError) as e:
+                raise RequestError("bad_frame", f"schema: {e}") from None
+            if schema is None:
+                raise RequestError("bad_frame", "schema must be a map")
+            self._adopt_schema(schema)
+        conn["hello"] = True
+        schema_d = self.state.schema.to_dict() if self.state.schema else None
+        return self._ok(
+            schema=schema_d,
+            tables=list(self.state.tables),
+            max_frame_bytes=self.cfg.max_frame_bytes,
+        )
+
+    def _adopt_schema(self, schema: EpisodeSchema) -> None:
+        if self.state.schema is None:
+            if min(schema.to_dict().values()) < 1:
+                raise RequestError("bad_frame", f"schema sizes must be >= 1: {schema}")
+            self.state.schema = schema
+            if self.storage is not None:
+                self.storage.log_schema(schema)
+            log.info("buffer learned episode schema %s", schema)
+        elif schema != self.state.schema:
+            raise RequestError(
+                "schema_mismatch", f"server holds {self.state.schema}, client sent {schema}"
+            )
+
+    def _decode_insert(self, msg: dict[str, Any]) -> tuple[list[Episode], list[str]]:
+        schema = self.state.schema
+        if schema is None:
+            raise RequestError("bad_request", "no episode schema yet: send one in hello")
+        tables = msg.get("tables")
+        if tables is None:
+            tables = list(self.state.tables)
+        if not isinstance(tables, list) or not all(isinstance(t, str) for t in tables):
+            raise RequestError("bad_frame", "tables must be a list of names")
+        missing = [t for t in tables if t not in self.state.tables]
+        if missing:
+            raise RequestError("no_table", f"no tables {missing}; have {list(self.state.tables)}")
+        wires = msg.get("episodes")
+        if not isinstance(wires, list):
+            raise RequestError("bad_frame", "episodes must be a list")
+        eps = []
+        for i, wire in enumerate(wires):
+            try:
+                ep = codec.episode_from_wire(wire)
+                ep.validate(schema)
+            except (CodecError, EpisodeError) as e:
+                raise RequestError("invalid_episode", f"episode {i}: {e}") from None
+            eps.append(ep)
+        return eps, tables
+
+    async def _op_insert(self, msg: dict[str, Any], body: bytes) -> dict[str, Any]:
+        eps, tables = self._decode_insert(msg)
+        if any(not self.state.is_duplicate(ep.key) for ep in eps):
+            await self._wait(
+                lambda: all(self.state.tables[t].limiter.can_insert(1) for t in tables),
+                self.cfg.insert_timeout_s,
+                f"insert into {tables}",
+            )
+        fresh = [ep for ep in eps if not self.state.is_duplicate(ep.key)]
+        if fresh and self.storage is not None:
+            self.storage.log_insert(tables, body)  # durable before anything is acked
+        stored = sum(self.state.insert(ep, tables) for ep in eps)
+        dups = len(eps) - stored
+        for t in tables:
+            self.metrics.inserts.labels(table=t).inc(stored)
+        if dups:
+            self.metrics.rejected.labels(reason="duplicate").inc(dups)
+        self._update_sizes()
+        await self._notify()
+        self._maybe_snapshot()
+        return self._ok(inserted=stored, duplicates=dups)
+
+    async def _op_sample(self, msg: dict[str, Any]) -> dict[str, Any]:
+        name, n = msg.get("table"), msg.get("batch_size")
+        if not isinstance(name, str) or name not in self.state.tables:
+            raise RequestError("no_table", f"no table {name!r}; have {list(self.state.tables)}")
+        table = self.state.tables[name]
+        limit = table.cfg.capacity if table.cfg.kind == "cycling" else 1 << 20
+        if type(n) is not int or not 1 <= n <= limit:
+            raise RequestError("bad_request", f"batch_size {n!r} outside 1..{limit} for {name}")
+        timeout = msg.get("timeout_s", self.cfg.sample_timeout_s)
+        if not isinstance(timeout, (int, float)) or not timeout >= 0:
+            raise RequestError("bad_request", f"timeout_s {timeout!r} must be a number >= 0")
+        timeout = min(float(timeout), self.cfg.sample_timeout_s)
+        await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}")
+        keys = self.state.choose(name, n, self.rng)
+        if self.storage is not None:
+            self.storage.log_sample(name, keys)
+        eps = self.state.apply_sample(name, keys)
+        self.metrics.samples.labels(table=name).inc(len(eps))
+        self._update_sizes()
+        await self._notify()
+        return self._ok(episodes=[codec.episode_to_wire(ep) for ep in eps])
+
+    async def _wait(self, ready, timeout: float, what: str) -> None:
+        assert self._changed is not None
+        async with self._changed:
+            if ready():
+                return
+            try:
+                await asyncio.wait_for(self._changed.wait_for(ready), timeout)
+            except TimeoutError:
+                raise RequestError(
+                    "rate_limited", f"{what}: rate limiter did not allow it within {timeout:g} s"
+                ) from None
+
+    async def _notify(self) -> None:
+        assert self._changed is not None
+        async with self._changed:
+            self._changed.notify_all()
+
+    def _maybe_snapshot(self) -> None:
+        every = self.cfg.snapshot_every_inserts
+        if self.storage is not None and every and self.storage.records_since_snapshot >= every:
+            self.storage.snapshot(self.state)
+
+    def _update_sizes(self) -> None:
+        for name, t in self.state.tables.items():
+            self.metrics.size.labels(table=name).set(len(t))
+
+    def stats(self) -> dict[str, Any]:
+        """Table sizes and counters, episodes stored, connections, log generation."""
+        st = self.state.stats()
+        st["connections"] = len(self._conns)
+        st["generation"] = self.storage.gen if self.storage else None
+        return st
+
+
+class ServerThread:
+    """A `BufferServer` on its own event loop in a daemon thread (tests, embedding).
+
+    Args:
+        cfg: the server config.
+
+    Attributes:
+        host, port: where it listens once `start` returned; metrics_port likewise.
+    """
+
+    def __init__(self, cfg: BufferConfig) -> None:
+        self.server = BufferServer(cfg)
+        self.host = cfg.host
+        self.port = 0
+        self.metrics_port: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="buffer-server", daemon=True)
+
+    def start(self, timeout: float = 30.0) -> ServerThread:
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise TimeoutError("buffer server did not start")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def _run(self) -> None:
+        asyncio.run(self._main())
+
+    async def _main(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        try:
+            await self.server.start()
+        except BaseException as e:
+            self._error = e
+            self._ready.set()
+            return
+        self.port, self.metrics_port = self.server.port, self.server.metrics_port
+        self._ready.set()
+        await self._stop.wait()
+        await self.server.close(snapshot=self._snapshot_on_stop)
+
+    def stop(self, snapshot: bool = True, timeout: float = 30.0) -> None:
+        """Close the server (final snapshot unless `snapshot` is False) and join the thread."""
+        self._snapshot_on_stop = snapshot
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout)
+
+    _snapshot_on_stop = True
+
+    def __enter__(self) -> ServerThread:
+        return self.start() if not self._thread.is_alive() else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def start_server_thread(cfg: BufferConfig) -> ServerThread:
+    """Start a buffer server in a background thread; returns once it listens.
+
+    Args:
+        cfg: the server config (port 0 picks a free port; read it from ``.port``).
+
+    Returns:
+        The running `ServerThread`; call ``.stop()`` to shut it down.
+    """
+    return ServerThread(cfg).start()
+
+
+def run(cfg: BufferConfig, port_file: str | None = None) -> None:
+    """Serve in the foreground until SIGINT/SIGTERM (the `credit buffer serve` body).
+
+    Args:
+        cfg: the server config.
+        port_file: once listening, atomically write ``{"host", "port", "metrics_port",
+            "pid"}`` as JSON here (how a launcher learns a port picked with port 0).
+    """
+    asyncio.run(_run_main(cfg, port_file))
+
+
+async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
+    import json
+    import signal
+
+    server = BufferServer(cfg)
+    await server.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if port_file:
+        info = {"host": cfg.host, "port": server.port, "metrics_port": server.metrics_port}
+        info["pid"] = os.getpid()
+        tmp = f"{port_file}.tmp"
+        with open(tmp, "w") as f:
+            json.dump(info, f)
+        os.replace(tmp, port_file)
+    try:
+        await stop.wait()
+    finally:
+        log.info("buffer service shutting down")
+        await server.close()

@@ -1,0 +1,152 @@
+"""Tables (cycling, replay) and their sample-to-insert rate limiter.
+
+Pure bookkeeping over episode keys ``(actor_id, episode_seq)``; no I/O, no asyncio. The
+server decides *when* to call these (waiting on the limiter); `BufferState` owns the
+episodes the keys point at.
+"""
+
+from __future__ import annotations
+
+import random
+from collections import deque
+from typing import Any
+
+from buffer_service.config import RateLimiterConfig, TableConfig
+
+Key = tuple[int, int]
+
+
+class RateLimiter:
+    """Reverb's SampleToInsertRatio (see `RateLimiterConfig` for the exact rule)."""
+
+    def __init__(self, cfg: RateLimiterConfig) -> None:
+        self.cfg = cfg
+        self.inserts = 0
+        self.samples = 0
+
+    def _bounds(self) -> tuple[float, float, float]:
+        spi = self.cfg.samples_per_insert
+        offset = spi * self.cfg.min_size_to_sample
+        diff = self.inserts * spi - self.samples
+        return diff, offset - self.cfg.error_buffer, offset + self.cfg.error_buffer
+
+    def can_sample(self, n: int, size: int) -> bool:
+        """May `n` episodes be sampled from a table currently holding `size`?"""
+        if size < self.cfg.min_size_to_sample:
+            return False
+        if self.cfg.samples_per_insert == 0:
+            return True
+        diff, lo, _ = self._bounds()
+        return diff - n >= lo
+
+    def can_insert(self, n: int = 1) -> bool:
+        """May `n` more episodes be inserted?"""
+        if self.cfg.samples_per_insert == 0:
+            return True
+        if self.inserts + n <= self.cfg.min_size_to_sample:
+            return True
+        diff, _, hi = self._bounds()
+        return diff + n * self.cfg.samples_per_insert <= hi
+
+
+class Table:
+    """FIFO-ordered episode keys with per-key sample counts.
+
+    Args:
+        cfg: the table's config (kind, capacity, K, rate limiter).
+    """
+
+    def __init__(self, cfg: TableConfig) -> None:
+        self.cfg = cfg
+        self.name = cfg.name
+        self.order: deque[Key] = deque()
+        self.times_sampled: dict[Key, int] = {}
+        self.limiter = RateLimiter(cfg.rate_limiter)
+        self.evicted = 0  # dropped on overflow
+        self.retired = 0  # removed after K samples
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def __contains__(self, key: Key) -> bool:
+        return key in self.times_sampled
+
+    def insert(self, key: Key) -> list[Key]:
+        """Append `key`; return the keys dropped from the front to respect capacity."""
+        self.order.append(key)
+        self.times_sampled[key] = 0
+        self.limiter.inserts += 1
+        dropped = []
+        while len(self.order) > self.cfg.capacity:
+            old = self.order.popleft()
+            del self.times_sampled[old]
+            dropped.append(old)
+        self.evicted += len(dropped)
+        return dropped
+
+    def ready(self, n: int) -> bool:
+        """Can a batch of `n` be sampled now (limiter and, for cycling, enough episodes)?"""
+        size = len(self.order)
+        if size == 0 or (self.cfg.kind == "cycling" and size < n):
+            return False
+        return self.limiter.can_sample(n, size)
+
+    def choose(self, n: int, rng: random.Random) -> list[Key]:
+        """Pick `n` keys: cycling without replacement, replay uniformly with replacement."""
+        size = len(self.order)
+        if self.cfg.kind == "cycling":
+            idx = rng.sample(range(size), n)
+        else:
+            idx = [rng.randrange(size) for _ in range(n)]
+        return [self.order[i] for i in idx]
+
+    def mark_sampled(self, keys: list[Key]) -> list[Key]:
+        """Count one sample per key; return keys retired for reaching K (cycling only)."""
+        self.limiter.samples += len(keys)
+        k = self.cfg.max_times_sampled if self.cfg.kind == "cycling" else 0
+        retired = []
+        for key in keys:
+            if key not in self.times_sampled:  # replayed log naming an evicted key
+                continue
+            self.times_sampled[key] += 1
+            if k and self.times_sampled[key] >= k:
+                retired.append(key)
+        for key in retired:
+            del self.times_sampled[key]
+            self.order.remove(key)
+        self.retired += len(retired)
+        return retired
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "kind": self.cfg.kind,
+            "size": len(self.order),
+            "capacity": self.cfg.capacity,
+            "inserts": self.limiter.inserts,
+            "samples": self.limiter.samples,
+            "evicted": self.evicted,
+            "retired": self.retired,
+        }
+
+    def to_state(self) -> dict[str, Any]:
+        """Snapshot form: keys in FIFO order with their counts, plus limiter totals."""
+        return {
+            "items": [[k[0], k[1], self.times_sampled[k]] for k in self.order],
+            "inserts": self.limiter.inserts,
+            "samples": self.limiter.samples,
+            "evicted": self.evicted,
+            "retired": self.retired,
+        }
+
+    def load_state(self, st: dict[str, Any]) -> None:
+        self.order.clear()
+        self.times_sampled.clear()
+        for actor, seq, count in st["items"]:
+            self.order.append((actor, seq))
+            self.times_sampled[(actor, seq)] = count
+        while len(self.order) > self.cfg.capacity:  # capacity shrank between runs
+            del self.times_sampled[self.order.popleft()]
+        self.limiter.inserts = st["inserts"]
+        self.limiter.samples = st["samples"]
+        self.evicted = st["evicted"]
+        self.retired = st["retired"]

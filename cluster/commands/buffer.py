@@ -1,0 +1,130 @@
+"""`credit buffer serve`: run the episode buffer service in the foreground."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import os
+
+from buffer_service.config import BufferConfig, RateLimiterConfig, TableConfig, default_tables
+from buffer_service.episode import EpisodeSchema
+
+TABLE_HELP = (
+    "a table as key=value pairs, repeatable, e.g. "
+    "name=cycling,kind=cycling,capacity=32,max_times_sampled=8,min_size_to_sample=32 or "
+    "name=replay,kind=replay,capacity=5000,samples_per_insert=4,error_buffer=64 "
+    "(default: cycling 32/K=8 and replay 5000)"
+)
+log = logging.getLogger(__name__)
+LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("buffer", help="the episode buffer service")
+    bsub = p.add_subparsers(dest="buffer_command", required=True, metavar="BUFFER_COMMAND")
+    s = bsub.add_parser("serve", help="serve episodes over TCP until SIGINT/SIGTERM")
+    s.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs a token)")
+    s.add_argument("--port", type=int, default=0, help="TCP port; 0 picks a free one")
+    s.add_argument("--port-file", help="write {host, port, metrics_port, pid} JSON once listening")
+    s.add_argument(
+        "--token",
+        default=os.environ.get("CREDIT_BUFFER_TOKEN"),
+        help="shared secret checked in hello (default: $CREDIT_BUFFER_TOKEN)",
+    )
+    s.add_argument("--table", action="append", default=[], metavar="SPEC", help=TABLE_HELP)
+    s.add_argument(
+        "--schema",
+        metavar="SPEC",
+        help="n_agents=..,obs_dim=..,state_dim=..,"
+        "n_actions=..,max_t=.. (default: learned from the first client)",
+    )
+    s.add_argument(
+        "--snapshot-dir", help="log + snapshot directory (omit: in memory, no durability)"
+    )
+    s.add_argument("--no-fsync", action="store_true", help="ack inserts after write(), not fsync")
+    s.add_argument(
+        "--snapshot-every",
+        type=int,
+        default=BufferConfig.snapshot_every_inserts,
+        help="snapshot after this many logged inserts (0 = on demand/shutdown only)",
+    )
+    s.add_argument(
+        "--max-frame-mb",
+        type=float,
+        default=BufferConfig.max_frame_bytes / 2**20,
+        help="largest request frame in MiB",
+    )
+    s.add_argument(
+        "--sample-timeout",
+        type=float,
+        default=BufferConfig.sample_timeout_s,
+        help="longest rate-limiter wait of a sample, seconds",
+    )
+    s.add_argument(
+        "--insert-timeout",
+        type=float,
+        default=BufferConfig.insert_timeout_s,
+        help="longest rate-limiter wait of an insert, seconds",
+    )
+    s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
+    s.set_defaults(func=cmd_serve)
+
+
+def _pairs(spec: str, what: str) -> dict[str, str]:
+    out = {}
+    for part in spec.split(","):
+        key, sep, val = part.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{what} {spec!r}: expected key=value pairs separated by commas")
+        out[key.strip()] = val.strip()
+    return out
+
+
+def parse_table(spec: str) -> TableConfig:
+    """TableConfig from ``name=..,kind=..,capacity=..,max_times_sampled=..,<limiter keys>``."""
+    d = _pairs(spec, "--table")
+    limiter = {k: float(d.pop(k)) for k in list(d) if k in LIMITER_KEYS}
+    if "min_size_to_sample" in limiter:
+        limiter["min_size_to_sample"] = int(limiter["min_size_to_sample"])
+    table: dict = {
+        k: (int(v) if k in ("capacity", "max_times_sampled") else v) for k, v in d.items()
+    }
+    table["rate_limiter"] = RateLimiterConfig(**limiter)
+    return TableConfig.from_dict(table)
+
+
+def build_config(args: argparse.Namespace) -> BufferConfig:
+    schema = None
+    if args.schema:
+        schema = EpisodeSchema.from_dict(
+            {k: int(v) for k, v in _pairs(args.schema, "--schema").items()}
+        )
+    cfg = BufferConfig(
+        host=args.host,
+        port=args.port,
+        token=args.token or None,
+        tables=tuple(parse_table(t) for t in args.table) or default_tables(),
+        schema=schema,
+        max_frame_bytes=int(args.max_frame_mb * 2**20),
+        snapshot_dir=args.snapshot_dir,
+        fsync=not args.no_fsync,
+        snapshot_every_inserts=args.snapshot_every,
+        sample_timeout_s=args.sample_timeout,
+        insert_timeout_s=args.insert_timeout,
+        metrics_port=args.metrics_port,
+    )
+    cfg.validate()
+    return cfg
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from buffer_service.server import run
+
+    try:
+        cfg = build_config(args)
+    except (ValueError, TypeError) as e:
+        log.error("credit buffer serve: %s", e)
+        return 2
+    run(cfg, port_file=args.port_file)
+    return 0

@@ -1,0 +1,169 @@
+"""Log + snapshot durability: restore, torn tails, compaction, and a real kill -9."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from buffer_service.client import BufferClient
+from buffer_service.config import BufferConfig
+from buffer_service.server import start_server_thread
+from tests.buffer_service.conftest import SCHEMA, make_episode, table
+
+REPO = Path(__file__).resolve().parents[2]
+TABLES = (table("cycling", "cycling", capacity=100, k=2), table("replay", "replay", capacity=100))
+
+
+def boot(path, **kw):
+    kw.setdefault("tables", TABLES)
+    kw.setdefault("schema", SCHEMA)
+    srv = start_server_thread(BufferConfig(snapshot_dir=str(path), **kw))
+    return srv, BufferClient(port=srv.port, max_retries=2)
+
+
+def test_restore_from_log_without_snapshot(tmp_path):
+    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    c.insert([make_episode(0, i) for i in range(5)])
+    c.insert([make_episode(1, 0)], tables=["replay"])
+    c.sample("cycling", 5)  # every cycling item sampled once (K = 2)
+    c.close()
+    srv.stop(snapshot=False)  # like a crash: only the log holds the state
+    assert sorted(os.listdir(tmp_path)) == ["log-00000000.bin"]
+    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    try:
+        st = c.stats()
+        assert st["episodes_stored"] == 6
+        assert st["tables"]["cycling"]["size"] == 5 and st["tables"]["replay"]["size"] == 6
+        assert c.insert([make_episode(0, 3)]) == {"inserted": 0, "duplicates": 1}
+        c.sample("cycling", 5)  # the second sample after restart retires them all
+        assert c.stats()["tables"]["cycling"]["size"] == 0
+    finally:
+        c.close()
+        srv.stop(snapshot=False)
+
+
+def test_torn_last_record_is_dropped(tmp_path):
+    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    c.insert([make_episode(0, 0)])
+    c.insert([make_episode(0, 1)])
+    c.close()
+    srv.stop(snapshot=False)
+    log_path = tmp_path / "log-00000000.bin"
+    size = log_path.stat().st_size
+    with open(log_path, "r+b") as f:  # a crash mid-append: cut the last record short
+        f.truncate(size - 17)
+    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    try:
+        assert c.stats()["episodes_stored"] == 1
+        assert c.insert([make_episode(0, 1)])["inserted"] == 1  # it was never acked
+    finally:
+        c.close()
+        srv.stop(snapshot=False)
+    with open(log_path, "ab") as f:  # garbage after valid records is ignored too
+        f.write(os.urandom(300))
+    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    try:
+        assert c.stats()["episodes_stored"] == 2
+    finally:
+        c.close()
+        srv.stop(snapshot=False)
+
+
+def test_snapshot_compacts_the_log(tmp_path):
+    srv, c = boot(tmp_path, snapshot_every_inserts=3)
+    for i in range(7):
+        c.insert([make_episode(4, i)])
+    c.sample("cycling", 7)
+    assert c.stats()["generation"] == 2  # snapshots after the 3rd and 6th insert
+    path = c.snapshot()
+    assert path.endswith("snapshot-00000003.bin")
+    assert sorted(os.listdir(tmp_path)) == ["log-00000003.bin", "snapshot-00000003.bin"]
+    c.insert([make_episode(4, 7)])
+    c.close()
+    srv.stop(snapshot=False)
+    srv, c = boot(tmp_path)
+    try:
+        st = c.stats()
+        assert st["episodes_stored"] == 8 and st["tables"]["cycling"]["size"] == 8
+        c.sample("cycling", 8)  # the seven sampled before the snapshot now reach K = 2
+        assert seqs_left(c) == [7]
+    finally:
+        c.close()
+        srv.stop()
+
+
+def seqs_left(c: BufferClient) -> list[int]:
+    n = c.stats()["tables"]["cycling"]["size"]
+    return sorted(int(s) for s in c.sample("cycling", n).episode_seq)
+
+
+def _serve_cli(snap: Path, port: int, port_file: Path) -> subprocess.Popen:
+    if port_file.exists():
+        port_file.unlink()
+    cmd = [
+        sys.executable, "-m", "cluster.cli", "buffer", "serve", "--port", str(port),
+        "--port-file", str(port_file), "--snapshot-dir", str(snap), "--snapshot-every", "7",
+        "--table", "name=all,kind=cycling,capacity=1000,max_times_sampled=1",
+    ]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 30
+    while not port_file.exists():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise RuntimeError(f"buffer serve did not start: {proc.stderr.read().decode()}")
+        time.sleep(0.05)
+    return proc
+
+
+def test_kill_9_loses_no_acked_episode(tmp_path):
+    snap, port_file = tmp_path / "snap", tmp_path / "port.json"
+    proc = _serve_cli(snap, 0, port_file)
+    port = json.loads(port_file.read_text())["port"]
+    client = BufferClient(port=port, schema=SCHEMA, backoff_s=0.05, max_retries=40)
+    acked: list[tuple[int, int]] = []
+    killed = threading.Event()
+    errors: list[BaseException] = []
+
+    def actor():
+        try:
+            for seq in range(60):  # bounded; keeps inserting through the kill
+                client.insert([make_episode(7, seq, t=3)])
+                acked.append((7, seq))
+                if seq == 40:
+                    killed.wait(30)
+        except BaseException as e:  # surfaced below
+            errors.append(e)
+
+    th = threading.Thread(target=actor)
+    th.start()
+    try:
+        while len(acked) < 25 and th.is_alive():
+            time.sleep(0.01)
+        os.kill(proc.pid, signal.SIGKILL)  # mid-stream: a request may be in flight
+        proc.wait(10)
+        n_before = len(acked)
+        proc = _serve_cli(snap, port, port_file)  # same port: the client reconnects itself
+        killed.set()
+        th.join(60)
+        assert not errors, errors
+        assert len(acked) == 60 and n_before >= 25
+        st = client.stats()
+        assert st["episodes_stored"] == 60 and st["tables"]["all"]["size"] == 60
+        batch = client.sample("all", 60)
+        keys = list(zip(batch.actor_id.tolist(), batch.episode_seq.tolist(), strict=True))
+        assert sorted(keys) == sorted(acked) and len(set(keys)) == 60  # exactly once each
+        assert client.reconnects >= 2
+    finally:
+        killed.set()
+        client.close()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
