@@ -10,11 +10,12 @@ import sys
 from actors.envs.base import EnvError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import env as env_cmd
+from cluster.commands import metrics as metrics_cmd
 from cluster.config import ConfigError
 
 log = logging.getLogger("credit")
 
-COMMANDS = [env_cmd, bench_cmd]
+COMMANDS = [env_cmd, bench_cmd, metrics_cmd]
 
 
 class UsageError(ValueError):
