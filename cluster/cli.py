@@ -9,13 +9,14 @@ import sys
 
 from actors.envs.base import EnvError
 from cluster.commands import bench as bench_cmd
+from cluster.commands import dashboard as dashboard_cmd
 from cluster.commands import env as env_cmd
 from cluster.commands import metrics as metrics_cmd
 from cluster.config import ConfigError
 
 log = logging.getLogger("credit")
 
-COMMANDS = [env_cmd, bench_cmd, metrics_cmd]
+COMMANDS = [env_cmd, bench_cmd, metrics_cmd, dashboard_cmd]
 
 
 class UsageError(ValueError):
