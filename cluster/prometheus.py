@@ -340,5 +340,5 @@ def query_range(
     prom_url: str, promql: str, start: float, end: float, step_s: float, timeout_s: float = 10.0
 ) -> list[dict]:
     """Range query: [{"metric": {...}, "values": [[unix_time, "text value"], ...]}, ...]."""
-    params = {"query": promql, "start": f"{start:.3f}", "end": f"{end:.3f}", "step": f"{step_s}s"}
+    params = {"query": promql, "start": f"{start:.3f}", "end": f"{end:.3f}", "step": f"{step_s:g}"}
     return _api(prom_url, "/api/v1/query_range", params, timeout_s)

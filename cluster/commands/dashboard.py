@@ -72,13 +72,13 @@ def choose_source(args: argparse.Namespace, cfg: DashboardConfig) -> Source:
         if not path.is_file():
             raise ConfigError(f"--sd-file: {path} does not exist")
         _sd_targets(path)  # fail now, not in the scrape thread, if it is not file_sd JSON
-        return ExporterSource(functools.partial(_sd_targets, path), cfg)
+        return ExporterSource(functools.partial(_sd_targets, path), cfg, label=str(path))
     url = running_url(args.state_dir)
     if url:
         return PrometheusSource(url, cfg)
     path = default_sd_file()
     log.info("no Prometheus running; scraping the exporters listed in %s", path)
-    return ExporterSource(functools.partial(_sd_targets, path), cfg)
+    return ExporterSource(functools.partial(_sd_targets, path), cfg, label=str(path))
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:

@@ -59,13 +59,20 @@ class Query:
 
 @dataclass(frozen=True)
 class Panel:
-    """One chart: a title a person reads at a glance, the unit of its y axis, its queries."""
+    """One chart: a title a person reads at a glance, the unit of its y axis, its queries.
+
+    Attributes:
+        y_min: the y axis always includes this value (0 for rates and counts); None = data only.
+        y_max: the y axis always includes this value (1 for fractions); None = data only.
+    """
 
     id: str
     title: str
     unit: str
     queries: tuple[Query, ...]
     description: str = ""
+    y_min: float | None = 0.0
+    y_max: float | None = None
 
 
 PANELS: tuple[Panel, ...] = (
@@ -133,6 +140,7 @@ PANELS: tuple[Panel, ...] = (
         "loss",
         (Query("value", "credit_loss", ("name",), "{name}", agg="max"),),
         "Last value of each loss term.",
+        y_min=None,
     ),
     Panel(
         "test_return",
@@ -140,6 +148,7 @@ PANELS: tuple[Panel, ...] = (
         "return",
         (Query("value", "credit_test_return", legend="mean return", agg="max"),),
         "Mean return of the greedy test episodes.",
+        y_min=None,
     ),
     Panel(
         "test_win_rate",
@@ -147,6 +156,7 @@ PANELS: tuple[Panel, ...] = (
         "fraction (0-1)",
         (Query("value", "credit_test_win_rate", legend="win rate", agg="max"),),
         "Fraction of greedy test episodes won.",
+        y_max=1.0,
     ),
     Panel(
         "kl_masked",
@@ -154,6 +164,7 @@ PANELS: tuple[Panel, ...] = (
         "fraction (0-1)",
         (Query("value", "credit_kl_masked_fraction", legend="masked", agg="max"),),
         "Fraction of timesteps whose advantage the KL mask zeroed.",
+        y_max=1.0,
     ),
     Panel(
         "actor_restarts",

@@ -114,6 +114,7 @@ class ExporterSource:
 
     Args:
         targets: returns the current "host:port" list.
+        label: where the targets come from (shown on the page), e.g. the file-SD path.
         cfg: the dashboard settings (scrape interval, history, rate window).
         fetcher: target -> exposition text (default: HTTP GET /metrics).
     """
@@ -123,8 +124,10 @@ class ExporterSource:
         targets: Callable[[], Sequence[str]],
         cfg: DashboardConfig,
         fetcher: Callable[[str], str] = local.fetch,
+        label: str = "",
     ) -> None:
         self.cfg = cfg
+        self.label = label
         self.history = local.ScrapeHistory(targets, cfg.history_s, fetcher)
         self._stop = threading.Event()
         self._thread = threading.Thread(
@@ -141,8 +144,9 @@ class ExporterSource:
 
     def describe(self) -> str:
         targets = self.history.last_targets
-        return f"{len(targets)} exporter(s) scraped directly" + (
-            f": {', '.join(targets)}" if targets else " (none listed yet)"
+        where = f" listed in {self.label}" if self.label else ""
+        return f"{len(targets)} exporter(s){where}, scraped directly" + (
+            "" if targets else " (none listed yet)"
         )
 
     def series(self, panel: Panel, start: float, end: float) -> tuple[Series, list[str]]:
@@ -170,6 +174,8 @@ def panels_payload(source: Source, range_s: float, now: float | None = None) -> 
                 "title": panel.title,
                 "unit": panel.unit,
                 "description": panel.description,
+                "y_min": panel.y_min,
+                "y_max": panel.y_max,
                 "series": series,
             }
         )

@@ -55,7 +55,7 @@ function render(data) {
   for (const panel of data.panels) {
     const node = card(panel);
     const n = creditCharts.drawChart(node.querySelector("svg"), panel.series,
-      {start: data.start, end: data.end, unit: panel.unit});
+      {start: data.start, end: data.end, unit: panel.unit, yMin: panel.y_min, yMax: panel.y_max});
     node.dataset.points = String(n);
     node.dataset.series = String(panel.series.length);
     legend(node, panel.series);

@@ -1,6 +1,6 @@
 // A small SVG line-chart drawer for the credit dashboard (no dependencies, no network).
 // drawChart(svg, series, opts): series = [{name, points: [[unixSeconds, value], ...]}],
-// opts = {start, end, unit}. Draws axes with "nice" ticks, one polyline per series and an
+// opts = {start, end, unit, yMin, yMax}. Draws axes with "nice" ticks, one polyline per series and an
 // empty-state text. Returns the number of points drawn.
 "use strict";
 
@@ -40,13 +40,17 @@ function formatClock(t) {
   return d.toTimeString().slice(0, 8);
 }
 
-function yRange(series) {
+function yRange(series, yMin, yMax) {
   let lo = Infinity, hi = -Infinity;
   for (const s of series) for (const [, v] of s.points) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
-  if (lo === Infinity) return [0, 1];
-  if (lo > 0 && lo < hi * 0.5) lo = 0;   // rates and counts read best from zero
-  if (hi < 0 && hi > lo * 0.5) hi = 0;
-  if (hi === lo) { const pad = Math.abs(hi) * 0.1 || 1; lo -= pad; hi += pad; }
+  if (lo === Infinity) return [0, 1, 0.25];
+  // Rates, counts and fractions read best against their natural bounds (0, 1).
+  if (yMin !== null && yMin !== undefined) lo = Math.min(lo, yMin);
+  if (yMax !== null && yMax !== undefined) hi = Math.max(hi, yMax);
+  if (hi === lo) {
+    const pad = Math.abs(hi) * 0.1 || 1;
+    if (yMin !== null && yMin !== undefined && lo === yMin) hi += pad; else { lo -= pad; hi += pad; }
+  }
   const step = niceStep(hi - lo, 4);
   return [Math.floor(lo / step) * step, Math.ceil(hi / step) * step, step];
 }
@@ -64,15 +68,19 @@ function drawChart(svg, series, opts) {
       class: "empty"}, "no data yet"));
     return 0;
   }
-  const [lo, hi, step] = yRange(series);
-  const x = t => m.l + ((t - opts.start) / (opts.end - opts.start)) * pw;
+  const [lo, hi, step] = yRange(series, opts.yMin, opts.yMax);
+  // Zoom to the data while they cover less than the window (at least 30 s shown).
+  let first = opts.end;
+  for (const s of series) if (s.points.length) first = Math.min(first, s.points[0][0]);
+  const x0 = Math.max(opts.start, Math.min(first, opts.end - 30));
+  const x = t => m.l + ((t - x0) / (opts.end - x0)) * pw;
   const y = v => m.t + ph - ((v - lo) / (hi - lo)) * ph;
   for (let v = lo; v <= hi + step / 2; v += step) {
     svg.appendChild(el("line", {x1: m.l, x2: m.l + pw, y1: y(v), y2: y(v), class: "gridline"}));
     svg.appendChild(el("text", {x: m.l - 6, y: y(v) + 4, "text-anchor": "end"}, formatValue(v)));
   }
-  const tstep = niceStep(opts.end - opts.start, 4);
-  for (let t = Math.ceil(opts.start / tstep) * tstep; t <= opts.end; t += tstep) {
+  const tstep = niceStep(opts.end - x0, 4);
+  for (let t = Math.ceil(x0 / tstep) * tstep; t <= opts.end; t += tstep) {
     svg.appendChild(el("text", {x: x(t), y: H - 5, "text-anchor": "middle"}, formatClock(t)));
   }
   series.forEach((s, i) => {
