@@ -84,6 +84,13 @@ PANELS: tuple[Panel, ...] = (
         "Environment steps per second each rollout actor completes (counted per episode).",
     ),
     Panel(
+        "actor_episodes",
+        "Episodes/s per actor",
+        "episodes/s",
+        (Query("rate", "credit_episodes_total", ("actor",), "actor {actor}"),),
+        "Episodes per second each rollout actor finishes and sends to the buffer.",
+    ),
+    Panel(
         "buffer_inserts",
         "Episodes inserted per table",
         "episodes/s",

@@ -32,6 +32,7 @@ CHROMEDRIVER = shutil.which("chromedriver")
 # Panels the actors and the learner feed; the buffer's appear once buffer_service exports.
 FED_PANELS = (
     "env_steps",
+    "actor_episodes",
     "policy_lag",
     "learner_updates",
     "update_seconds",
