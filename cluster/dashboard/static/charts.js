@@ -30,7 +30,7 @@ function formatValue(v) {
   if (a >= 1e6) return (v / 1e6).toFixed(a >= 1e7 ? 0 : 1) + "M";
   if (a >= 1e4) return (v / 1e3).toFixed(a >= 1e5 ? 0 : 1) + "k";
   if (a >= 100) return v.toFixed(0);
-  if (a >= 1) return v.toFixed(a >= 10 ? 1 : 2);
+  if (a >= 1) return String(Number(v.toFixed(a >= 10 ? 1 : 2)));  // 5, 2.5, 12.3
   if (a >= 0.001) return v.toFixed(3).replace(/0+$/, "").replace(/\.$/, "");
   return v.toExponential(1);
 }
