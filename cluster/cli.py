@@ -11,14 +11,16 @@ from actors.envs.base import EnvError
 from cluster.cli_errors import UsageError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import buffer as buffer_cmd
+from cluster.commands import dashboard as dashboard_cmd
 from cluster.commands import env as env_cmd
+from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
 from cluster.config import ConfigError
 
 log = logging.getLogger("credit")
 
-COMMANDS = [train_cmd, repro_cmd, env_cmd, bench_cmd, buffer_cmd]
+COMMANDS = [train_cmd, repro_cmd, env_cmd, bench_cmd, buffer_cmd, metrics_cmd, dashboard_cmd]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,70 @@
+"""`credit metrics up|down|status`: a local Prometheus that scrapes the running cluster."""
+
+from __future__ import annotations
+
+import argparse
+
+from cluster import prometheus as prom
+from cluster.config import build
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("metrics", help="run a local Prometheus scraping the cluster's exporters")
+    msub = p.add_subparsers(dest="metrics_command", required=True, metavar="METRICS_COMMAND")
+    state_help = "where the pid file, generated config and log live (default ~/.credit/metrics)"
+
+    up = msub.add_parser("up", help="start prometheus on 127.0.0.1 (detached)")
+    up.add_argument(
+        "--sd-file",
+        default="",
+        help="file_sd JSON listing the exporters (default ~/.credit/metrics/targets.json)",
+    )
+    up.add_argument("--port", type=int, default=9090, help="HTTP port; 0 picks a free one")
+    up.add_argument("--data-dir", default="", help="TSDB folder (default <state-dir>/data)")
+    up.add_argument("--state-dir", default="", help=state_help)
+    up.add_argument(
+        "--scrape-interval", type=float, default=1.0, help="seconds between scrapes (default 1)"
+    )
+    up.add_argument("--retention", default="1d", help="how long samples are kept (default 1d)")
+    up.set_defaults(func=cmd_up)
+
+    down = msub.add_parser("down", help="stop the prometheus that `up` started")
+    down.add_argument("--state-dir", default="", help=state_help)
+    down.set_defaults(func=cmd_down)
+
+    status = msub.add_parser("status", help="print the running prometheus's URL")
+    status.add_argument("--state-dir", default="", help=state_help)
+    status.set_defaults(func=cmd_status)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    cfg = build(
+        prom.PrometheusConfig,
+        {
+            "sd_file": args.sd_file,
+            "port": args.port,
+            "data_dir": args.data_dir,
+            "state_dir": args.state_dir,
+            "scrape_interval_s": args.scrape_interval,
+            "retention": args.retention,
+        },
+    )
+    state = prom.start(cfg)
+    print(f"prometheus ready at {state.url} (pid {state.pid}); scraping {cfg.resolved().sd_file}")
+    print(f"log: {state.log_file}; stop with: credit metrics down")
+    return 0
+
+
+def cmd_down(args: argparse.Namespace) -> int:
+    state = prom.stop(args.state_dir)
+    if state is None:
+        print("no prometheus recorded; nothing to stop")
+    else:
+        print(f"stopped prometheus (pid {state.pid}, {state.url})")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    url = prom.running_url(args.state_dir)
+    print(url if url else "not running")
+    return 0 if url else 1

@@ -1,0 +1,165 @@
+"""End to end: headless Chromium reads the live dashboard while exporters are being updated.
+
+`running_training` is the seam: today it starts the synthetic feed (real `cluster.metrics`
+exporters updated through the public API by another process); swap its body for a short
+`credit train` run and the test is unchanged. The screenshot lands in test-artifacts/.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cluster import metrics as m
+from cluster import prometheus as prom
+from cluster.dashboard.server import (
+    DashboardConfig,
+    DashboardServer,
+    ExporterSource,
+    PrometheusSource,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+ARTIFACTS = ROOT / "test-artifacts"
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+# Panels the actors and the learner feed; the buffer's appear once buffer_service exports.
+FED_PANELS = (
+    "env_steps",
+    "actor_episodes",
+    "policy_lag",
+    "learner_updates",
+    "update_seconds",
+    "losses",
+    "test_return",
+    "test_win_rate",
+    "kl_masked",
+    "actor_restarts",
+    "weights_version",
+)
+
+pytestmark = [
+    pytest.mark.skipif(CHROMIUM is None, reason="chromium not on PATH (apt-get install chromium)"),
+    pytest.mark.skipif(
+        CHROMEDRIVER is None, reason="chromedriver not on PATH (apt-get install chromium-driver)"
+    ),
+]
+
+
+def wait_for(fn, timeout_s=90.0, what="condition"):
+    """Poll fn() until truthy; the deadline only guards against a hang."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = fn()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.5)
+
+
+@pytest.fixture(scope="module")
+def running_training(tmp_path_factory):
+    """Something that trains and exports metrics; yields its exporters as "host:port"."""
+    sd = tmp_path_factory.mktemp("training") / "targets.json"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cluster.dashboard.synthetic",
+            "--sd-file",
+            str(sd),
+            "--actors",
+            "2",
+        ],
+        cwd=ROOT,
+    )
+    try:
+        targets = wait_for(lambda: sd.exists() and m.read_file_sd(sd), what="the feed's SD file")
+        yield [f"{h}:{p}" for h, p in targets]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium not installed")
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1600,1200", "--hide-scrollbars"):  # fmt: skip
+        opts.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def panel_state(driver) -> dict[str, dict]:
+    script = """return Array.from(document.querySelectorAll('.panel')).map(p => ({
+        id: p.dataset.panel, points: Number(p.dataset.points || 0),
+        series: Number(p.dataset.series || 0), text: p.innerText}));"""
+    return {p["id"]: p for p in driver.execute_script(script)}
+
+
+def check_dashboard(driver, url: str, shot: str) -> dict[str, dict]:
+    driver.get(url)
+    assert "credit" in driver.title
+
+    def fed() -> dict | None:
+        s = panel_state(driver)
+        # > 1 point everywhere; a few more on the busiest chart so the picture shows a line.
+        ok = all(s.get(i, {}).get("points", 0) > 1 for i in FED_PANELS)
+        return s if ok and s["env_steps"]["points"] >= 16 else None
+
+    state = wait_for(fed, what="every actor/learner panel to hold data points")
+    ARTIFACTS.mkdir(exist_ok=True)
+    (ARTIFACTS / ".gitignore").write_text("*\n")
+    height = driver.execute_script("return document.documentElement.scrollHeight")
+    # The whole page in one picture: make the viewport as tall as the page.
+    metrics = {"width": 1600, "height": int(height) + 20, "deviceScaleFactor": 1, "mobile": False}
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", metrics)
+    time.sleep(0.5)  # let the resize re-layout before the picture (not an assertion)
+    driver.save_screenshot(str(ARTIFACTS / shot))
+    (ARTIFACTS / shot).with_suffix(".json").write_text(json.dumps(state, indent=2))
+    assert (ARTIFACTS / shot).stat().st_size > 10_000
+    for pid, p in state.items():
+        if p["points"] == 0:
+            assert "no data yet" in p["text"], pid  # empty charts say so
+        else:
+            assert "no data yet" not in p["text"], pid
+    assert "actor 0" in state["env_steps"]["text"] and "actor 1" in state["env_steps"]["text"]
+    assert "steps/s" in state["env_steps"]["text"]
+    return state
+
+
+def test_dashboard_scraping_exporters(running_training, browser):
+    cfg = DashboardConfig(port=0, range_s=120)
+    server = DashboardServer(cfg, ExporterSource(lambda: running_training, cfg)).start()
+    try:
+        check_dashboard(browser, server.url, "dashboard-exporters.png")
+    finally:
+        server.close()
+
+
+@pytest.mark.skipif(shutil.which("prometheus") is None, reason="prometheus not on PATH")
+def test_dashboard_reading_prometheus(running_training, browser, tmp_path):
+    sd = m.write_file_sd(tmp_path / "sd.json", [m.parse_target(t) for t in running_training])
+    state = prom.start(prom.PrometheusConfig(port=0, sd_file=str(sd), state_dir=str(tmp_path)))
+    cfg = DashboardConfig(port=0, range_s=120)
+    server = DashboardServer(cfg, PrometheusSource(state.url, cfg)).start()
+    try:
+        check_dashboard(browser, server.url, "dashboard-prometheus.png")
+    finally:
+        server.close()
+        prom.stop(tmp_path)

@@ -1,0 +1,153 @@
+"""cluster.metrics: exact names, per-component registries, the HTTP exporter, file SD."""
+
+from __future__ import annotations
+
+import json
+import urllib.request
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from cluster import metrics as m
+
+DESIGN_ACTOR_LEARNER = {
+    "credit_env_steps_total",
+    "credit_episodes_total",
+    "credit_learner_updates_total",
+    "credit_learner_update_seconds",
+    "credit_policy_lag_versions",
+    "credit_weights_version",
+    "credit_loss",
+    "credit_test_return",
+    "credit_test_win_rate",
+    "credit_kl_masked_fraction",
+    "credit_actor_restarts_total",
+}
+
+
+def scrape(endpoint: tuple[str, int]) -> dict[tuple[str, tuple], float]:
+    """Sample name + sorted labels -> value, from a real HTTP scrape."""
+    host, port = endpoint
+    assert host == "127.0.0.1"
+    with urllib.request.urlopen(f"http://{host}:{port}/metrics", timeout=5) as r:
+        text = r.read().decode()
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return out
+
+
+def test_names_match_design_section_5():
+    names = m.exposed_names(m.ActorMetrics(0).registry)
+    names |= m.exposed_names(m.LearnerMetrics().registry)
+    assert names == DESIGN_ACTOR_LEARNER
+    assert set(m.ACTOR_METRIC_NAMES) | set(m.LEARNER_METRIC_NAMES) == DESIGN_ACTOR_LEARNER
+
+
+def test_several_exporters_in_one_process_count_separately():
+    a0, a1, learner = m.ActorMetrics(0), m.ActorMetrics("1"), m.LearnerMetrics()
+    eps = [m.serve(a0.registry), m.serve(a1.registry), m.serve(learner.registry)]
+    try:
+        assert len({p for _, p in eps}) == 3 and all(p > 0 for _, p in eps)
+        a0.record(episodes=2, env_steps=57)
+        a0.record(episodes=1, env_steps=3)
+        a1.record(episodes=4, env_steps=100)
+        a1.set_weights_version(7)
+        s0, s1 = scrape(eps[0]), scrape(eps[1])
+        assert s0[("credit_env_steps_total", (("actor", "0"),))] == 60
+        assert s0[("credit_episodes_total", (("actor", "0"),))] == 3
+        assert s1[("credit_env_steps_total", (("actor", "1"),))] == 100
+        assert s1[("credit_weights_version", (("component", "actor-1"),))] == 7
+        assert ("credit_env_steps_total", (("actor", "1"),)) not in s0
+    finally:
+        for ep in eps:
+            m.stop(ep)
+
+
+def test_learner_records_updates_lag_tests_and_restarts():
+    lm = m.LearnerMetrics()
+    ep = m.serve(lm.registry)
+    try:
+        lm.record_update(0.02, {"critic": 0.5, "actor": -0.25}, weights_version=3)
+        lm.record_update(0.04, {"critic": 0.4, "actor": -0.2}, weights_version=4)
+        lm.record_policy_lag([0, 1, 1, 5])
+        lm.record_test(12.5, win_rate=0.75)
+        lm.record_test(13.0)  # no winner in this env: win rate keeps its last value
+        lm.set_kl_masked_fraction(0.125)
+        lm.actor_restarted()
+        s = scrape(ep)
+    finally:
+        m.stop(ep)
+    assert s[("credit_learner_updates_total", ())] == 2
+    assert s[("credit_learner_update_seconds_count", ())] == 2
+    assert s[("credit_learner_update_seconds_sum", ())] == pytest.approx(0.06)
+    assert s[("credit_loss", (("name", "critic"),))] == pytest.approx(0.4)
+    assert s[("credit_loss", (("name", "actor"),))] == pytest.approx(-0.2)
+    assert s[("credit_weights_version", (("component", "learner"),))] == 4
+    assert s[("credit_policy_lag_versions_count", ())] == 4
+    assert s[("credit_policy_lag_versions_sum", ())] == 7
+    assert s[("credit_policy_lag_versions_bucket", (("le", "1.0"),))] == 3
+    assert s[("credit_test_return", ())] == 13.0
+    assert s[("credit_test_win_rate", ())] == 0.75
+    assert s[("credit_kl_masked_fraction", ())] == 0.125
+    assert s[("credit_actor_restarts_total", ())] == 1
+
+
+def test_no_label_other_than_the_bounded_ones():
+    allowed = {"actor", "component", "name", "le"}
+    for reg in (m.ActorMetrics(5).registry, m.LearnerMetrics().registry):
+        for family in reg.collect():
+            for s in family.samples:
+                assert set(s.labels) <= allowed, (s.name, s.labels)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: m.ActorMetrics(0).record(-1, 3),
+        lambda: m.LearnerMetrics().record_update(-0.1, {}, 1),
+        lambda: m.LearnerMetrics().record_test(1.0, win_rate=1.5),
+        lambda: m.LearnerMetrics().set_kl_masked_fraction(2.0),
+        lambda: m.serve(m.CollectorRegistry(), port=70000),
+    ],
+)
+def test_bad_values_are_refused(call):
+    with pytest.raises(ValueError):
+        call()
+
+
+def test_file_sd_roundtrip_and_format(tmp_path):
+    path = tmp_path / "sd" / "targets.json"
+    m.write_file_sd(path, [("127.0.0.1", 9101), ("127.0.0.1", 9102)], {"job": "credit"})
+    assert json.loads(path.read_text()) == [
+        {"targets": ["127.0.0.1:9101", "127.0.0.1:9102"], "labels": {"job": "credit"}}
+    ]
+    assert m.read_file_sd(path) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
+    m.write_file_sd(path, [])  # rewritten in place; no temporary file left behind
+    assert json.loads(path.read_text()) == []
+    assert [p.name for p in path.parent.iterdir()] == ["targets.json"]
+    assert m.read_file_sd(tmp_path / "missing.json") == []
+
+
+@pytest.mark.parametrize(
+    ("targets", "labels"),
+    [
+        ([("127.0.0.1", 0)], None),
+        ([("", 80)], None),
+        ([("h", 1)], {"__x": "y"}),
+        ([("h", 1)], {"a-b": "y"}),
+    ],
+)
+def test_file_sd_refuses_bad_input(tmp_path, targets, labels):
+    with pytest.raises(ValueError):
+        m.write_file_sd(tmp_path / "t.json", targets, labels)
+
+
+def test_read_file_sd_names_a_broken_file(tmp_path):
+    bad = tmp_path / "t.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match=r"t\.json"):
+        m.read_file_sd(bad)
+    with pytest.raises(ValueError, match="host:port"):
+        m.parse_target("localhost")

@@ -1,0 +1,146 @@
+"""cluster.prometheus and `credit metrics up/down`: the generated config, the missing-binary
+message, and a real Prometheus scraping real exporters (skipped when it is not installed)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+import time
+
+import pytest
+import yaml
+
+from cluster import metrics as m
+from cluster import prometheus as prom
+from cluster.cli import main
+
+HAVE_PROMETHEUS = shutil.which("prometheus") is not None
+needs_prometheus = pytest.mark.skipif(
+    not HAVE_PROMETHEUS, reason="`prometheus` not on PATH (apt-get install prometheus)"
+)
+
+
+def wait_for(fn, timeout_s=60.0, what="condition"):
+    """Poll fn() until it returns something truthy; the deadline is a hang guard, not a check."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = fn()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.25)
+
+
+def test_render_config_scrapes_the_sd_file(tmp_path):
+    cfg = prom.PrometheusConfig(sd_file=str(tmp_path / "t.json"), state_dir=str(tmp_path))
+    doc = yaml.safe_load(prom.render_config(cfg.resolved()))
+    (job,) = doc["scrape_configs"]
+    assert job["file_sd_configs"][0]["files"] == [str(tmp_path / "t.json")]
+    assert job["scrape_interval"] == "1000ms"
+    assert doc["global"]["scrape_interval"] == "1000ms"
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("port", 70000), ("scrape_interval_s", 0.0), ("ready_timeout_s", 0.0)]
+)
+def test_bad_config_is_refused(field, value):
+    from cluster.config import ConfigError, build
+
+    with pytest.raises(ConfigError, match=field if field != "port" else "port"):
+        build(prom.PrometheusConfig, {field: value})
+
+
+def test_missing_binary_says_how_to_install(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PATH", str(tmp_path))  # an empty PATH: no prometheus on it
+    rc = main(["metrics", "up", "--state-dir", str(tmp_path), "--port", "0"])
+    assert rc == 2
+    assert "apt-get install prometheus" in capsys.readouterr().err
+
+
+def test_down_without_up_is_harmless(tmp_path, capsys):
+    assert main(["metrics", "down", "--state-dir", str(tmp_path)]) == 0
+    assert "nothing to stop" in capsys.readouterr().out
+    assert main(["metrics", "status", "--state-dir", str(tmp_path)]) == 1
+
+
+class Feeder:
+    """Two actors and a learner with real exporters, updated by a thread through the public API."""
+
+    def __init__(self) -> None:
+        self.actors = [m.ActorMetrics(i) for i in range(2)]
+        self.learner = m.LearnerMetrics()
+        self.endpoints = [m.serve(a.registry) for a in self.actors]
+        self.endpoints.append(m.serve(self.learner.registry))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        version = 0
+        while not self._stop.wait(0.1):
+            version += 1
+            for a in self.actors:
+                a.record(episodes=1, env_steps=25)
+            self.learner.record_update(0.01, {"critic": 1.0 / version}, weights_version=version)
+
+    def __enter__(self) -> Feeder:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        for ep in self.endpoints:
+            m.stop(ep)
+
+
+def env_steps_by_actor(url: str) -> dict[str, float]:
+    return {
+        r["metric"]["actor"]: float(r["value"][1])
+        for r in prom.query(url, "credit_env_steps_total")
+    }
+
+
+@needs_prometheus
+def test_real_prometheus_scrapes_the_exporters(tmp_path, capsys):
+    sd = tmp_path / "targets.json"
+    state_dir = tmp_path / "state"
+    with Feeder() as feed:
+        m.write_file_sd(sd, feed.endpoints, {"cluster": "test"})
+        args = ["metrics", "up", "--sd-file", str(sd), "--port", "0", "--state-dir", str(state_dir)]
+        assert main(args) == 0
+        try:
+            state = prom.read_state(state_dir)
+            assert state is not None and state.url.startswith("http://127.0.0.1:")
+            assert state.url in capsys.readouterr().out
+            first = wait_for(
+                lambda: (s := env_steps_by_actor(state.url)) and len(s) == 2 and s,
+                what="both actors in prometheus",
+            )
+            wait_for(
+                lambda: all(v > first[a] for a, v in env_steps_by_actor(state.url).items()),
+                what="credit_env_steps_total to increase for every actor",
+            )
+            updates = prom.query(state.url, "credit_learner_updates_total")
+            assert updates and float(updates[0]["value"][1]) > 0
+            assert updates[0]["metric"]["cluster"] == "test"  # file_sd labels arrive
+            assert main(["metrics", "up", "--state-dir", str(state_dir), "--port", "0"]) == 2
+        finally:
+            assert main(["metrics", "down", "--state-dir", str(state_dir)]) == 0
+    assert prom.read_state(state_dir) is None
+    with pytest.raises(ProcessLookupError):
+        os.kill(state.pid, 0)
+
+
+@needs_prometheus
+def test_query_reports_a_bad_expression(tmp_path):
+    state = prom.start(
+        prom.PrometheusConfig(port=0, state_dir=str(tmp_path), sd_file=str(tmp_path / "sd.json"))
+    )
+    try:
+        with pytest.raises(ValueError, match="rate"):
+            prom.query(state.url, "rate(")
+        assert prom.query(state.url, "credit_env_steps_total") == []
+    finally:
+        prom.stop(tmp_path)
