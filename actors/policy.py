@@ -36,7 +36,12 @@ class ExplorationConfig:
 
 
 def select_actions(
-    out: torch.Tensor, avail: torch.Tensor, kind: str, epsilon: float, greedy: bool, gen: torch.Generator
+    out: torch.Tensor,
+    avail: torch.Tensor,
+    kind: str,
+    epsilon: float,
+    greedy: bool,
+    gen: torch.Generator,
 ) -> torch.Tensor:
     """Pick one available action per agent.
 

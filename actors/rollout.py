@@ -55,7 +55,9 @@ class RolloutWorker:
         seed: int = 0,
     ):
         if venv.num_envs % n_ensemble:
-            raise ValueError(f"num_envs={venv.num_envs} is not a multiple of n_ensemble={n_ensemble}")
+            raise ValueError(
+                f"num_envs={venv.num_envs} is not a multiple of n_ensemble={n_ensemble}"
+            )
         self.venv, self.agent, self.kind = venv, agent, policy_kind
         self.exploration, self.n_ensemble, self.actor_id = exploration, n_ensemble, actor_id
         self.info = venv.info
@@ -77,7 +79,9 @@ class RolloutWorker:
         self.version = weights.version
         return True
 
-    def collect(self, num_episodes: int, t_env: int | None = None, greedy: bool = False) -> list[Episode]:
+    def collect(
+        self, num_episodes: int, t_env: int | None = None, greedy: bool = False
+    ) -> list[Episode]:
         """At least `num_episodes` episodes (whole rounds of `num_envs`)."""
         episodes: list[Episode] = []
         while len(episodes) < num_episodes:
@@ -107,7 +111,11 @@ class RolloutWorker:
         t = 0
         with torch.no_grad():
             while active.any() and t < limit:
-                obs[:, t], state[:, t], avail[:, t] = venv.get_obs(), venv.get_state(), venv.get_avail_actions()
+                obs[:, t], state[:, t], avail[:, t] = (
+                    venv.get_obs(),
+                    venv.get_state(),
+                    venv.get_avail_actions(),
+                )
                 x = torch.cat([torch.from_numpy(obs[:, t]).reshape(e, m * n, -1), last, ids], -1)
                 out, h = self.agent(x, h)
                 av = torch.from_numpy(avail[:, t]).reshape(e, m * n, a).bool()
@@ -123,8 +131,15 @@ class RolloutWorker:
                 active &= ~done
                 t += 1
             length[active] = t  # cut by our own loop bound: a time-limit cut, not terminal
-            obs[:, t], state[:, t], avail[:, t] = venv.get_obs(), venv.get_state(), venv.get_avail_actions()
-        episodes = [self._episode(j, length[j], obs, state, avail, actions, reward, terminated) for j in range(k)]
+            obs[:, t], state[:, t], avail[:, t] = (
+                venv.get_obs(),
+                venv.get_state(),
+                venv.get_avail_actions(),
+            )
+        episodes = [
+            self._episode(j, length[j], obs, state, avail, actions, reward, terminated)
+            for j in range(k)
+        ]
         steps = int(length.sum())
         if t_env is None:
             self.t_env += steps

@@ -164,9 +164,14 @@ class EpisodeBatch:
             raise EpisodeError("cannot batch zero episodes")
         t = max(ep.length for ep in episodes) if pad_to is None else pad_to
         b = len(episodes)
-        scal = {k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64) for k in EPISODE_SCALARS}
+        scal = {
+            k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64)
+            for k in EPISODE_SCALARS
+        }
         if all(ep.length == t for ep in episodes):  # nothing to pad: one stack per field
-            arrays = {name: np.stack([getattr(ep, name) for ep in episodes]) for name in EPISODE_ARRAYS}
+            arrays = {
+                name: np.stack([getattr(ep, name) for ep in episodes]) for name in EPISODE_ARRAYS
+            }
             return cls(**arrays, **scal)
         out: dict[str, np.ndarray] = {}
         for name in EPISODE_ARRAYS:

@@ -99,7 +99,9 @@ def plot(curves: list[Curve], game: str, path: Path) -> None:
     plt.close(fig)
 
 
-def run(algos: list[str], games: list[str], seeds: int, overrides: list[str], workers: int) -> list[Curve]:
+def run(
+    algos: list[str], games: list[str], seeds: int, overrides: list[str], workers: int
+) -> list[Curve]:
     jobs = [(a, g) for g in games for a in algos]
     if workers <= 1:
         return [run_pair(a, g, seeds, overrides, 1) for a, g in jobs]

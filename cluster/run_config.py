@@ -103,7 +103,12 @@ class TrainConfig:
         }
 
 
-SECTIONS = {"env": EnvConfig, "exploration": ExplorationConfig, "replay": ReplayConfig, "run": RunConfig}
+SECTIONS = {
+    "env": EnvConfig,
+    "exploration": ExplorationConfig,
+    "replay": ReplayConfig,
+    "run": RunConfig,
+}
 
 
 def default_files(algo: str, env_id: str) -> list[Path]:
@@ -140,7 +145,11 @@ def load_train_config(
     data.setdefault("env", {})["id"] = env_id
     unknown = [k for k in data if k not in (*SECTIONS, "algo", "algo_name")]
     if unknown:
-        raise ConfigError(f"unknown config section {unknown[0]!r}; valid sections: algo, {', '.join(SECTIONS)}")
-    built = {name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()}
+        raise ConfigError(
+            f"unknown config section {unknown[0]!r}; valid sections: algo, {', '.join(SECTIONS)}"
+        )
+    built = {
+        name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()
+    }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
     return TrainConfig(algo_name=algo, algo=algo_cfg, **built)

@@ -95,15 +95,20 @@ class LocalTrainer:
         run = cfg.run
         torch.manual_seed(run.seed)
         self.spec = get_algo(cfg.algo_name)
-        self.venv = make_vec_env(cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args)
-        self.test_venv = make_vec_env(cfg.env.id, n_ensemble * run.test_episodes, seed=run.seed + 10_000, **cfg.env.args)
+        self.venv = make_vec_env(
+            cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args
+        )
+        self.test_venv = make_vec_env(
+            cfg.env.id, n_ensemble * run.test_episodes, seed=run.seed + 10_000, **cfg.env.args
+        )
         self.info = self.venv.info
         schema = self.info.schema()
         self.learner: Learner = self.spec.build(cfg.algo, schema, n_ensemble, run.device)
         self.worker = self._worker(self.venv, run.seed)
         self.test_worker = self._worker(self.test_venv, run.seed + 1)
         self.replays = [
-            EpisodeReplay(cfg.replay.capacity, np.random.default_rng(run.seed * 1000 + k)) for k in range(n_ensemble)
+            EpisodeReplay(cfg.replay.capacity, np.random.default_rng(run.seed * 1000 + k))
+            for k in range(n_ensemble)
         ]
         self.t_env = 0
         self.episodes = 0
@@ -117,13 +122,17 @@ class LocalTrainer:
         # In one process the workers act with the learner's own agent module (no weight copy);
         # `follow` keeps their policy_version tags right.
         agent = self.learner.agent
-        return RolloutWorker(venv, agent, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed)
+        return RolloutWorker(
+            venv, agent, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed
+        )
 
     @property
     def wall_s(self) -> float:
         return self.wall_offset + time.monotonic() - self.started
 
-    def train(self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False) -> None:
+    def train(
+        self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False
+    ) -> None:
         """Train until t_env >= t_max, evaluating every test_interval env steps."""
         run, bs = self.cfg.run, self.cfg.replay.batch_size
         bar = Progress(run.t_max) if progress else None
@@ -145,8 +154,15 @@ class LocalTrainer:
                 if on_eval:
                     on_eval(records)
                 if bar:
-                    bar.update(self.t_env, f"test_return {np.mean([r.test_return_mean for r in records]):.3f}")
-            if run.save_interval and self.t_env - self.last_save_t >= run.save_interval and self.checkpoint_dir:
+                    bar.update(
+                        self.t_env,
+                        f"test_return {np.mean([r.test_return_mean for r in records]):.3f}",
+                    )
+            if (
+                run.save_interval
+                and self.t_env - self.last_save_t >= run.save_interval
+                and self.checkpoint_dir
+            ):
                 self.save(self.checkpoint_dir)
                 self.last_save_t = self.t_env
         if bar:

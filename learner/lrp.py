@@ -40,7 +40,9 @@ def _stabilise(z: torch.Tensor, eps: float) -> torch.Tensor:
     return z + eps * torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
 
 
-def lrp_epsilon(mlp: MLP, x: torch.Tensor, eps: float = 0.01, rule: LrpRule = "eps_residual") -> tuple[torch.Tensor, torch.Tensor]:
+def lrp_epsilon(
+    mlp: MLP, x: torch.Tensor, eps: float = 0.01, rule: LrpRule = "eps_residual"
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Relevance of every input feature for the (single) output of `mlp`.
 
     Args:
@@ -68,7 +70,9 @@ def lrp_epsilon(mlp: MLP, x: torch.Tensor, eps: float = 0.01, rule: LrpRule = "e
             residual = out - relevance.sum(-1)
             weight = x.abs()
             total = weight.sum(-1, keepdim=True)
-            share = torch.where(total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight))
+            share = torch.where(
+                total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight)
+            )
             relevance = relevance + residual.unsqueeze(-1) * share
     return relevance, out
 

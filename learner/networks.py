@@ -8,6 +8,7 @@ trained together follow exactly the updates they would follow apart. E = 1 is a 
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -24,7 +25,9 @@ class EnsembleLinear(nn.Module):
         super().__init__()
         self.in_features, self.out_features = in_features, out_features
         bound = 1.0 / math.sqrt(in_features)  # nn.Linear's default initialisation range
-        self.weight = nn.Parameter(torch.empty(n_ensemble, in_features, out_features).uniform_(-bound, bound))
+        self.weight = nn.Parameter(
+            torch.empty(n_ensemble, in_features, out_features).uniform_(-bound, bound)
+        )
         self.bias = nn.Parameter(torch.empty(n_ensemble, 1, out_features).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -64,7 +67,9 @@ class AgentNet(nn.Module):
     Shapes: inputs [E, M, input_dim], h [E, M, hidden] -> out [E, M, n_actions], h' [E, M, hidden].
     """
 
-    def __init__(self, n_ensemble: int, input_dim: int, n_actions: int, hidden: int = 64, fc: int = 32):
+    def __init__(
+        self, n_ensemble: int, input_dim: int, n_actions: int, hidden: int = 64, fc: int = 32
+    ):
         super().__init__()
         self.hidden = hidden
         self.gru = EnsembleGRUCell(n_ensemble, input_dim, hidden)
@@ -88,11 +93,13 @@ class MLP(nn.Module):
     Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP.
     """
 
-    def __init__(self, n_ensemble: int, in_features: int, hidden: tuple[int, ...], out_features: int = 1):
+    def __init__(
+        self, n_ensemble: int, in_features: int, hidden: tuple[int, ...], out_features: int = 1
+    ):
         super().__init__()
         sizes = [in_features, *hidden, out_features]
         self.layers = nn.ModuleList(
-            EnsembleLinear(n_ensemble, a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+            EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -117,7 +124,9 @@ class QMixer(nn.Module):
     without state). Shapes: qs [E, M, N], cond [E, M, cond_dim] -> q_tot [E, M, 1].
     """
 
-    def __init__(self, n_ensemble: int, n_agents: int, cond_dim: int, embed: int = 32, hyper_hidden: int = 64):
+    def __init__(
+        self, n_ensemble: int, n_agents: int, cond_dim: int, embed: int = 32, hyper_hidden: int = 64
+    ):
         super().__init__()
         self.n_agents, self.embed = n_agents, embed
         self.hyper_w1 = MLP(n_ensemble, cond_dim, (hyper_hidden,), n_agents * embed)
@@ -177,7 +186,9 @@ class VersionedWeights:
 
     @classmethod
     def from_module(cls, module: nn.Module, version: int) -> VersionedWeights:
-        return cls(version, {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()})
+        return cls(
+            version, {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
+        )
 
     def load_into(self, module: nn.Module) -> None:
         module.load_state_dict({k: torch.as_tensor(v) for k, v in self.arrays.items()})

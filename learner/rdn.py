@@ -69,7 +69,9 @@ class RDNConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.critic_hidden or min(self.critic_hidden) < 1:
-            raise ValueError(f"critic_hidden needs at least one positive width, got {self.critic_hidden}")
+            raise ValueError(
+                f"critic_hidden needs at least one positive width, got {self.critic_hidden}"
+            )
         if self.lrp_rule not in LRP_RULES:
             raise ValueError(f"lrp_rule must be one of {LRP_RULES}")
 
@@ -85,7 +87,9 @@ class RDNLearner:
 
     policy_kind = "q"
 
-    def __init__(self, cfg: RDNConfig, info: EpisodeSchema, n_ensemble: int = 1, device: str = "cpu"):
+    def __init__(
+        self, cfg: RDNConfig, info: EpisodeSchema, n_ensemble: int = 1, device: str = "cpu"
+    ):
         self.cfg, self.info, self.n_ensemble, self.device = cfg, info, n_ensemble, device
         n, a = info.n_agents, info.n_actions
         if cfg.next_action == "joint_max" and a**n > cfg.joint_max_limit:
@@ -98,8 +102,12 @@ class RDNLearner:
         self.agent = AgentNet(n_ensemble, in_dim, a, cfg.agent.hidden, cfg.agent.fc).to(device)
         self.critic = MLP(n_ensemble, n * self.block, tuple(cfg.critic_hidden), 1).to(device)
         self.target_critic = TargetNet(self.critic, cfg.target_update_interval)
-        self.critic_updater = Updater(list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic")
-        self.agent_updater = Updater(list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent")
+        self.critic_updater = Updater(
+            list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic"
+        )
+        self.agent_updater = Updater(
+            list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent"
+        )
         self.updates = 0
 
     def critic_inputs(self, hist: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -112,14 +120,18 @@ class RDNLearner:
         x = torch.cat([hist, F.one_hot(actions, self.info.n_actions).float(), ids], dim=-1)
         return x.reshape(e, b * tp, n * self.block)
 
-    def _next_value(self, hist_next: torch.Tensor, qs_next: torch.Tensor, avail_next: torch.Tensor) -> torch.Tensor:
+    def _next_value(
+        self, hist_next: torch.Tensor, qs_next: torch.Tensor, avail_next: torch.Tensor
+    ) -> torch.Tensor:
         """Target critic value of the next step, [E, B, T]."""
         e, b, t, n, _ = hist_next.shape
         critic = self.target_critic.module
         if self.cfg.next_action == "greedy":
             greedy = qs_next.masked_fill(~avail_next, -1e10).argmax(-1)
             return critic(self.critic_inputs(hist_next, greedy)).view(e, b, t)
-        joint = torch.tensor(list(itertools.product(range(self.info.n_actions), repeat=n)), device=self.device)
+        joint = torch.tensor(
+            list(itertools.product(range(self.info.n_actions), repeat=n)), device=self.device
+        )
         values = []
         for ja in joint:  # A^N is small here by construction (joint_max_limit)
             acts = ja.expand(e, b, t, n)

@@ -62,8 +62,18 @@ ALGOS: dict[str, AlgoSpec] = {
     "iql": AlgoSpec("iql", ValueConfig, _value("none"), "independent Q-learning"),
     "vdn": AlgoSpec("vdn", ValueConfig, _value("sum"), "value decomposition by sum"),
     "qmix": AlgoSpec("qmix", ValueConfig, _value("qmix"), "QMIX, mixer conditioned on the state"),
-    "qmix_ns": AlgoSpec("qmix_ns", ValueConfig, _value("qmix_ns"), "QMIX, mixer conditioned on the joint observation"),
-    "rdn": AlgoSpec("rdn", RDNConfig, lambda c, s, e, d: RDNLearner(c, s, e, d), "relevance decomposition network"),
+    "qmix_ns": AlgoSpec(
+        "qmix_ns",
+        ValueConfig,
+        _value("qmix_ns"),
+        "QMIX, mixer conditioned on the joint observation",
+    ),
+    "rdn": AlgoSpec(
+        "rdn",
+        RDNConfig,
+        lambda c, s, e, d: RDNLearner(c, s, e, d),
+        "relevance decomposition network",
+    ),
 }
 
 
@@ -72,4 +82,6 @@ def get_algo(name: str) -> AlgoSpec:
     try:
         return ALGOS[name]
     except KeyError:
-        raise ValueError(f"unknown algorithm {name!r}; valid algorithms: {', '.join(sorted(ALGOS))}") from None
+        raise ValueError(
+            f"unknown algorithm {name!r}; valid algorithms: {', '.join(sorted(ALGOS))}"
+        ) from None

@@ -9,7 +9,9 @@ from __future__ import annotations
 import torch
 
 
-def td_targets(reward: torch.Tensor, terminated: torch.Tensor, next_value: torch.Tensor, gamma: float) -> torch.Tensor:
+def td_targets(
+    reward: torch.Tensor, terminated: torch.Tensor, next_value: torch.Tensor, gamma: float
+) -> torch.Tensor:
     """One-step targets y_t = r_t + γ (1 - terminated_t) V(s_{t+1}).
 
     Shapes: reward, terminated, next_value [..., T] (or with a trailing agent axis, broadcast).

@@ -56,7 +56,9 @@ class ValueConfig:
         if self.grad_norm_clip <= 0:
             raise ValueError(f"grad_norm_clip must be > 0, got {self.grad_norm_clip}")
         if self.target_update_interval < 1:
-            raise ValueError(f"target_update_interval must be >= 1, got {self.target_update_interval}")
+            raise ValueError(
+                f"target_update_interval must be >= 1, got {self.target_update_interval}"
+            )
         if self.mixer_embed < 1 or self.hypernet_hidden < 1:
             raise ValueError("mixer_embed and hypernet_hidden must be >= 1")
 
@@ -73,19 +75,32 @@ class ValueLearner:
 
     policy_kind = "q"
 
-    def __init__(self, cfg: ValueConfig, info: EpisodeSchema, mixing: Mixing, n_ensemble: int = 1, device: str = "cpu"):
+    def __init__(
+        self,
+        cfg: ValueConfig,
+        info: EpisodeSchema,
+        mixing: Mixing,
+        n_ensemble: int = 1,
+        device: str = "cpu",
+    ):
         self.cfg, self.info, self.mixing = cfg, info, mixing
         self.n_ensemble, self.device = n_ensemble, device
         in_dim = info.obs_dim + info.n_actions + info.n_agents
-        self.agent = AgentNet(n_ensemble, in_dim, info.n_actions, cfg.agent.hidden, cfg.agent.fc).to(device)
+        self.agent = AgentNet(
+            n_ensemble, in_dim, info.n_actions, cfg.agent.hidden, cfg.agent.fc
+        ).to(device)
         modules = [self.agent]
         self.mixer: QMixer | None = None
         if mixing in ("qmix", "qmix_ns"):
             cond = info.state_dim if mixing == "qmix" else info.n_agents * info.obs_dim
-            self.mixer = QMixer(n_ensemble, info.n_agents, cond, cfg.mixer_embed, cfg.hypernet_hidden).to(device)
+            self.mixer = QMixer(
+                n_ensemble, info.n_agents, cond, cfg.mixer_embed, cfg.hypernet_hidden
+            ).to(device)
             modules.append(self.mixer)
         self.target_agent = TargetNet(self.agent, cfg.target_update_interval)
-        self.target_mixer = TargetNet(self.mixer, cfg.target_update_interval) if self.mixer else None
+        self.target_mixer = (
+            TargetNet(self.mixer, cfg.target_update_interval) if self.mixer else None
+        )
         params = [p for m in modules for p in m.parameters()]
         self.updater = Updater(params, cfg.lr, cfg.grad_norm_clip, name=f"{mixing} TD")
         self.updates = 0
@@ -111,12 +126,16 @@ class ValueLearner:
             tqs = unroll(self.target_agent.module, inputs)[:, :, 1:]
             avail_next = tb.avail[:, :, 1:]
             if self.cfg.double_q:
-                best = qs.detach()[:, :, 1:].masked_fill(~avail_next, -1e10).argmax(-1, keepdim=True)
+                best = (
+                    qs.detach()[:, :, 1:].masked_fill(~avail_next, -1e10).argmax(-1, keepdim=True)
+                )
                 next_q = tqs.gather(-1, best).squeeze(-1)
             else:
                 next_q = tqs.masked_fill(~avail_next, -1e10).max(-1).values
         if self.mixing == "none":
-            y = td_targets(tb.reward.unsqueeze(-1), tb.terminated.unsqueeze(-1), next_q, self.cfg.gamma)
+            y = td_targets(
+                tb.reward.unsqueeze(-1), tb.terminated.unsqueeze(-1), next_q, self.cfg.gamma
+            )
             td = chosen - y
             loss = masked_mean(td.pow(2), tb.mask.unsqueeze(-1).expand_as(td))
             q_taken = chosen.mean(-1)

@@ -44,7 +44,9 @@ class EnvInfo:
 
     def schema(self) -> EpisodeSchema:
         """The episode schema every episode of this env satisfies."""
-        return EpisodeSchema(self.n_agents, self.obs_shape, self.state_shape, self.n_actions, self.episode_limit)
+        return EpisodeSchema(
+            self.n_agents, self.obs_shape, self.state_shape, self.n_actions, self.episode_limit
+        )
 
     def as_smac_dict(self) -> dict[str, int]:
         return {
@@ -88,7 +90,9 @@ class VecEnv(Protocol):
     info: EnvInfo
 
     def reset(self) -> None: ...
-    def step(self, actions: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict]]: ...
+    def step(
+        self, actions: np.ndarray, active: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[dict]]: ...
     def get_obs(self) -> np.ndarray: ...
     def get_state(self) -> np.ndarray: ...
     def get_avail_actions(self) -> np.ndarray: ...
@@ -135,7 +139,9 @@ class SerialVecEnv:
         for env in self.envs:
             env.reset()
 
-    def step(self, actions: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    def step(
+        self, actions: np.ndarray, active: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[dict]]:
         reward = np.zeros(self.num_envs, np.float32)
         terminated = np.ones(self.num_envs, bool)
         infos: list[dict] = [{} for _ in range(self.num_envs)]

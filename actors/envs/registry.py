@@ -36,7 +36,9 @@ class EnvSpec:
 def _families() -> list[EnvSpec]:
     specs = [
         EnvSpec("matrix/two_step", make_two_step, description="QMIX two-step game (optimum 8)"),
-        EnvSpec("matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"),
+        EnvSpec(
+            "matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"
+        ),
     ]
     return specs
 

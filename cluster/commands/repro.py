@@ -23,11 +23,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     m = rsub.add_parser("matrix", help="seed Fig. 5.3: every algorithm on both matrix games")
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
-    m.add_argument("--algos", default=",".join(repro_matrix.ALGOS), help="comma-separated algorithms")
-    m.add_argument("--games", default=",".join(repro_matrix.GAMES), help="comma-separated matrix env ids")
-    m.add_argument("--t-max", type=int, default=None, help="env steps per run (default: configs/envs/matrix.yaml)")
+    m.add_argument(
+        "--algos", default=",".join(repro_matrix.ALGOS), help="comma-separated algorithms"
+    )
+    m.add_argument(
+        "--games", default=",".join(repro_matrix.GAMES), help="comma-separated matrix env ids"
+    )
+    m.add_argument(
+        "--t-max",
+        type=int,
+        default=None,
+        help="env steps per run (default: configs/envs/matrix.yaml)",
+    )
     m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
-    m.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every run")
+    m.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override for every run",
+    )
     m.set_defaults(func=cmd_matrix)
 
 
@@ -36,10 +51,14 @@ def cmd_matrix(args: argparse.Namespace) -> int:
     games = [g for g in args.games.split(",") if g]
     for a in algos:
         if a not in ALGOS:
-            raise UsageError(f"unknown algorithm {a!r}; valid algorithms: {', '.join(sorted(ALGOS))}")
+            raise UsageError(
+                f"unknown algorithm {a!r}; valid algorithms: {', '.join(sorted(ALGOS))}"
+            )
     for g in games:
         if not g.startswith("matrix/"):
-            raise UsageError(f"{g!r} is not a matrix game; valid games: {', '.join(repro_matrix.GAMES)}")
+            raise UsageError(
+                f"{g!r} is not a matrix game; valid games: {', '.join(repro_matrix.GAMES)}"
+            )
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
@@ -58,7 +77,13 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         repro_matrix.plot(curves, g, out / f"matrix_{g.split('/', 1)[1]}.png")
     log.info("repro matrix finished in %.0f s", time.monotonic() - started)
     for a in algos:
-        cells = ", ".join(f"{g}: {v['optimal_runs']}/{v['runs']} optimal, median {v['final_return_median']:g}" for g, v in summary[a].items())
+        cells = ", ".join(
+            f"{g}: {v['optimal_runs']}/{v['runs']} optimal, median {v['final_return_median']:g}"
+            for g, v in summary[a].items()
+        )
         print(f"{a:8s} {cells}")
-    print(f"results in {out}: summary.json, curves.json, " + ", ".join(f"matrix_{g.split('/', 1)[1]}.png" for g in games))
+    print(
+        f"results in {out}: summary.json, curves.json, "
+        + ", ".join(f"matrix_{g.split('/', 1)[1]}.png" for g in games)
+    )
     return 0

@@ -26,8 +26,20 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     """Arguments shared by every command that builds a TrainConfig."""
     p.add_argument("--algo", help=f"algorithm, one of: {', '.join(sorted(ALGOS))} (default rdn)")
     p.add_argument("--env", help="env id, see `credit env list` (default matrix/four_game)")
-    p.add_argument("--config", action="append", default=[], metavar="FILE", help="YAML config layered on the shipped defaults (repeatable)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key, e.g. algo.lr=0.001 (repeatable)")
+    p.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="YAML config layered on the shipped defaults (repeatable)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one config key, e.g. algo.lr=0.001 (repeatable)",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -55,7 +67,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.resume)
         if not (out / "checkpoint" / "learner.pt").exists():
             raise ConfigError(f"--resume {out}: no checkpoint at {out / 'checkpoint'}")
-        cfg = load_train_config(args.algo, args.env, [str(out / "config.yaml"), *args.config], _overrides(args))
+        cfg = load_train_config(
+            args.algo, args.env, [str(out / "config.yaml"), *args.config], _overrides(args)
+        )
     else:
         cfg = load_train_config(args.algo, args.env, args.config, _overrides(args))
         name = f"{cfg.algo_name}_{cfg.env.id.replace('/', '-')}_s{cfg.run.seed}"
@@ -75,11 +89,19 @@ def cmd_train(args: argparse.Namespace) -> int:
                 metrics_file.write(json.dumps(r.as_json()) + "\n")
             metrics_file.flush()
 
-        log.info("training %s on %s for %d env steps -> %s", cfg.algo_name, cfg.env.id, cfg.run.t_max, out)
+        log.info(
+            "training %s on %s for %d env steps -> %s",
+            cfg.algo_name,
+            cfg.env.id,
+            cfg.run.t_max,
+            out,
+        )
         try:
             trainer.train(on_eval=on_eval, progress=True)
         except NonFiniteLossError as e:
-            log.error("stopping: %s; the last good checkpoint in %s is untouched", e, out / "checkpoint")
+            log.error(
+                "stopping: %s; the last good checkpoint in %s is untouched", e, out / "checkpoint"
+            )
             return 3
     if not records or records[-1].t_env != trainer.t_env:
         on_final = trainer.evaluate()

@@ -17,7 +17,9 @@ def test_shipped_layers_apply_seed_hyper_parameters():
 
 
 def test_overrides_win_and_are_typed():
-    cfg = load_train_config("vdn", "matrix/two_step", overrides=["algo.lr=0.001", "run.seed=7", "algo.double_q=false"])
+    cfg = load_train_config(
+        "vdn", "matrix/two_step", overrides=["algo.lr=0.001", "run.seed=7", "algo.double_q=false"]
+    )
     assert cfg.algo.lr == 0.001 and cfg.run.seed == 7 and cfg.algo.double_q is False
     assert parse_overrides(["a.b=1", "a.c=x"]) == {"a": {"b": 1, "c": "x"}}
 

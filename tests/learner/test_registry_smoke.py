@@ -79,7 +79,9 @@ def test_seed_batched_update_equals_separate_updates():
         single.target_critic.module.load_state_dict(single.critic.state_dict())
         single.step(batch)
         for k, v in single.agent.state_dict().items():
-            torch.testing.assert_close(v[0], pair.agent.state_dict()[k][member], atol=1e-5, rtol=1e-4)
+            torch.testing.assert_close(
+                v[0], pair.agent.state_dict()[k][member], atol=1e-5, rtol=1e-4
+            )
 
 
 def test_unknown_algorithm_lists_valid_names():

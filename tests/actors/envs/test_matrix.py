@@ -40,7 +40,12 @@ def test_every_payoff_and_transition(env_id, table):
 
 
 def test_four_game_payoffs_are_configurable_and_validated():
-    payoffs = {"00": [[1, 1], [1, 1]], "01": [[0, 0], [0, 0]], "10": [[0, 0], [0, 0]], "11": [[0, 0], [0, 9]]}
+    payoffs = {
+        "00": [[1, 1], [1, 1]],
+        "01": [[0, 0], [0, 0]],
+        "10": [[0, 0], [0, 0]],
+        "11": [[0, 0], [0, 9]],
+    }
     env = make_env("matrix/four_game", payoffs=payoffs)
     env.reset()
     env.step([1, 1])
@@ -52,9 +57,16 @@ def test_four_game_payoffs_are_configurable_and_validated():
 
 def test_env_info_and_errors():
     info = make_env("matrix/four_game").get_env_info()
-    assert info | {} == {**info, "n_agents": 2, "n_actions": 2, "obs_shape": 5, "state_shape": 5, "episode_limit": 2}
+    assert info | {} == {
+        **info,
+        "n_agents": 2,
+        "n_actions": 2,
+        "obs_shape": 5,
+        "state_shape": 5,
+        "episode_limit": 2,
+    }
     assert make_env("matrix/two_step").get_env_info()["obs_shape"] == 3
-    with pytest.raises(EnvError, match="valid envs: .*matrix/four_game"):
+    with pytest.raises(EnvError, match=r"valid envs: .*matrix/four_game"):
         make_env("matrix/nope")
     with pytest.raises(EnvError, match="no argument 'bogus'"):
         make_env("matrix/two_step", bogus=1)
