@@ -17,6 +17,7 @@ from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
 from cluster.config import ConfigError
+from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")
 
@@ -45,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, EnvError, UsageError) as e:
         print(f"credit: error: {e}", file=sys.stderr)
         return 2
+    except NonFiniteLossError as e:
+        print(f"credit: error: {e}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("credit: interrupted", file=sys.stderr)
         return 130

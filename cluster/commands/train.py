@@ -99,10 +99,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         try:
             trainer.train(on_eval=on_eval, progress=True)
         except NonFiniteLossError as e:
-            log.error(
-                "stopping: %s; the last good checkpoint in %s is untouched", e, out / "checkpoint"
+            where = out / "checkpoint"
+            kept = (
+                f"the last good checkpoint in {where} is untouched"
+                if where.exists()
+                else "no checkpoint was written yet"
             )
-            return 3
+            raise NonFiniteLossError(f"training stopped: {e}; {kept}") from None
     if not records or records[-1].t_env != trainer.t_env:
         on_final = trainer.evaluate()
         records.extend(on_final)
