@@ -12,6 +12,7 @@ from cluster.cli_errors import UsageError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import buffer as buffer_cmd
 from cluster.commands import dashboard as dashboard_cmd
+from cluster.commands import demo as demo_cmd
 from cluster.commands import env as env_cmd
 from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
@@ -21,7 +22,16 @@ from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")
 
-COMMANDS = [train_cmd, repro_cmd, env_cmd, bench_cmd, buffer_cmd, metrics_cmd, dashboard_cmd]
+COMMANDS = [
+    demo_cmd,
+    train_cmd,
+    repro_cmd,
+    env_cmd,
+    bench_cmd,
+    buffer_cmd,
+    metrics_cmd,
+    dashboard_cmd,
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

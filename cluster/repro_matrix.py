@@ -24,13 +24,15 @@ ALGOS = ("iql", "vdn", "qmix", "qmix_ns", "rdn")
 
 @dataclass(frozen=True)
 class Curve:
-    """Test return of every seed at every evaluation: t_env [K], returns [K, seeds]."""
+    """Test return of every seed at every evaluation: t_env [K], returns [K, seeds]; for RDN,
+    what its critic learned (cluster.rdn_diagnostics), one entry per seed."""
 
     algo: str
     game: str
     t_env: list[int]
     returns: list[list[float]]
     wall_s: float
+    rdn_diagnostics: list[dict] | None = None
 
 
 def run_pair(algo: str, game: str, seeds: int, overrides: list[str], threads: int) -> Curve:
@@ -54,7 +56,12 @@ def run_pair(algo: str, game: str, seeds: int, overrides: list[str], threads: in
     trainer.train(on_eval=on_eval)
     if not t_env or t_env[-1] != trainer.t_env:
         on_eval(trainer.evaluate())
-    return Curve(algo, game, t_env, returns, time.monotonic() - started)
+    diagnostics = None
+    if algo == "rdn":
+        from cluster.rdn_diagnostics import diagnose
+
+        diagnostics = diagnose(trainer.learner, game, cfg.env.args)
+    return Curve(algo, game, t_env, returns, time.monotonic() - started, diagnostics)
 
 
 def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
