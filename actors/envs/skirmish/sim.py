@@ -110,9 +110,11 @@ class Battle:
 
     def reset(self, envs: np.ndarray, rngs: list[np.random.Generator]) -> None:
         """Put battles `envs` (indices) at their start, each jittered by its own generator."""
-        st, j = self.st, self.cfg.start_jitter
+        st, j, uj = self.st, self.cfg.start_jitter, self.cfg.unit_jitter
         for m in envs:
-            noise = rngs[m].uniform(-j, j, size=(st.U, 2))
+            # Each side's formation shifts as a whole; units move a little within it.
+            shift = rngs[m].uniform(-j, j, size=(2, 2))[st.team]
+            noise = shift + rngs[m].uniform(-uj, uj, size=(st.U, 2))
             self.x[m] = np.clip(st.start_pos[:, 0] + noise[:, 0], 0, st.map_w - 1e-3)
             self.y[m] = np.clip(st.start_pos[:, 1] + noise[:, 1], 0, st.map_h - 1e-3)
         self.hp[envs] = st.hp_max
@@ -166,6 +168,7 @@ class Battle:
         closest = e.argmin(axis=2)
         closest_d = np.take_along_axis(e, closest[..., None], 2)[..., 0]
         exists = closest_d < INF
+        # Scripted enemies (attack-move) chase and attack the closest living agent.
         tgt = np.where(exists, closest, -1)
         # Agents: idle ones fire at the closest enemy in range without chasing.
         auto = exists[:, :N] & (closest_d[:, :N] <= st.range[:N])

@@ -265,7 +265,8 @@ class SkirmishConfig:
         reward_scale / reward_scale_rate: scale so a perfect episode returns 20.
         reward_only_positive: SMAC's default; the reward is |damage + kill bonus|.
         state_last_action: append all agents' last actions to the state.
-        start_jitter: uniform start position noise (cells), the seeded randomness.
+        start_jitter: uniform shift (cells) of each side's whole formation at reset.
+        unit_jitter: uniform per-unit start noise (cells) within the formation.
         shield_regen_delay_s / shield_regen_per_s: protoss shields regenerate after no damage.
     """
 
@@ -281,7 +282,8 @@ class SkirmishConfig:
     reward_scale_rate: float = 20.0
     reward_only_positive: bool = True
     state_last_action: bool = True
-    start_jitter: float = 0.3
+    start_jitter: float = 1.0
+    unit_jitter: float = 0.05
     shield_regen_delay_s: float = 10.0
     shield_regen_per_s: float = 2.0
 
@@ -290,7 +292,7 @@ class SkirmishConfig:
             raise EnvError("step_mul and substeps must be >= 1 with substeps dividing step_mul")
         if not (0 < self.shoot_range <= self.sight_range):
             raise EnvError("need 0 < shoot_range <= sight_range")
-        if self.move_amount <= 0 or self.reward_scale_rate <= 0 or self.start_jitter < 0:
+        if self.move_amount <= 0 or self.reward_scale_rate <= 0 or min(self.start_jitter, self.unit_jitter) < 0:
             raise EnvError("move_amount and reward_scale_rate must be > 0, start_jitter >= 0")
         if not math.isfinite(self.reward_win) or self.reward_defeat > 0:
             raise EnvError("reward_win must be finite and reward_defeat <= 0")
