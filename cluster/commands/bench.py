@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-BENCHES: list = []
+from cluster.bench import env as env_bench
+
+BENCHES: list = [env_bench]
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -89,6 +89,15 @@ class SkirmishVecEnv:
         self.last_action[:] = 0
         self._cache = {}
 
+    def reset_envs(self, envs: np.ndarray) -> None:
+        """Start a new episode in the envs with indices `envs` only (the others carry on)."""
+        envs = np.asarray(envs, np.int64).reshape(-1)
+        self.battle.reset(envs, self.rngs)
+        self.t[envs] = 0
+        self.done[envs] = False
+        self.last_action[envs] = 0
+        self._cache = {}
+
     def step(
         self, actions: np.ndarray, active: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
