@@ -105,6 +105,9 @@ class Battle:
         self.move_dir = np.zeros((M, U, 2))
         self.last_fire = np.zeros((M, U), bool)  # for rendering: who attacked whom last
         self.last_tgt = np.full((M, U), -1, np.int64)
+        self._m = np.arange(M)[:, None]
+        self._u = np.arange(U)[None, :]
+        self._is_healer = np.isin(np.arange(U), st.healers)
         self._regen_delay = cfg.shield_regen_delay_s * LOOPS_PER_SECOND
         self._regen = cfg.shield_regen_per_s / LOOPS_PER_SECOND * st.loops
 
@@ -145,12 +148,11 @@ class Battle:
         tgt, chase_ok = self._targets(dist, edge)
         has = tgt >= 0
         tc = np.maximum(tgt, 0)
-        d_t = np.take_along_axis(edge, tc[..., None], 2)[..., 0]
+        d_t = edge[self._m, self._u, tc]
         in_rng = has & (d_t <= st.range)
         alive = self.alive & active[:, None]
         heal_ok = self.energy > 0
-        is_healer = np.isin(np.arange(st.U), st.healers)
-        fire = alive & in_rng & np.where(is_healer, heal_ok, self.cd < st.loops)
+        fire = alive & in_rng & np.where(self._is_healer, heal_ok, self.cd < st.loops)
         self._resolve_attacks(fire, tc, dist, dx, dy)
         chase = alive & has & ~in_rng & chase_ok
         self._move(chase, tc, dx, dy, dist, d_t, alive & ~fire & ~chase & (self.order == MOVE))
@@ -166,7 +168,7 @@ class Battle:
         foe_alive = st.foe[None] & self.alive[:, None, :]
         e = np.where(foe_alive, edge, INF)
         closest = e.argmin(axis=2)
-        closest_d = np.take_along_axis(e, closest[..., None], 2)[..., 0]
+        closest_d = e[self._m, self._u, closest]
         exists = closest_d < INF
         # Scripted enemies (attack-move) chase and attack the closest living agent.
         tgt = np.where(exists, closest, -1)
@@ -175,7 +177,7 @@ class Battle:
         agent_tgt = np.where(auto, closest[:, :N], -1)
         ordered = self.order[:, :N] == ATTACK
         ot = np.maximum(self.order_tgt[:, :N], 0)
-        ot_alive = np.take_along_axis(self.alive, ot, 1)
+        ot_alive = self.alive[self._m, ot]
         agent_tgt = np.where(ordered & ot_alive, self.order_tgt[:, :N], agent_tgt)
         agent_tgt = np.where(self.order[:, :N] == MOVE, -1, agent_tgt)
         tgt[:, :N] = agent_tgt
@@ -194,13 +196,13 @@ class Battle:
         hurt = self.hp < st.hp_max - 1e-9
         d = np.where(ok, dist[:, h, :] + np.where(hurt[:, None, :], 0.0, 1e6), INF)
         best = d.argmin(axis=2)
-        best_d = np.take_along_axis(d, best[..., None], 2)[..., 0]
+        best_d = d[self._m, np.arange(len(h))[None], best]
         is_agent = h < st.N
         auto = np.where(is_agent[None], best_d <= st.range[h], best_d < INF)
         pick = np.where(auto, best, -1)
         ordered = (self.order[:, h] == ATTACK) & is_agent[None]
         ot = np.maximum(self.order_tgt[:, h], 0)
-        ot_ok = ordered & np.take_along_axis(self.alive, ot, 1)
+        ot_ok = ordered & self.alive[self._m, ot]
         pick = np.where(ot_ok, self.order_tgt[:, h], pick)
         tgt[:, h] = np.where(self.order[:, h] == MOVE, -1, pick)
         chase[:, h] = ot_ok | ~is_agent[None]
@@ -208,10 +210,9 @@ class Battle:
     def _resolve_attacks(self, fire, tc, dist, dx, dy) -> None:
         st, M, U = self.st, self.M, self.st.U
         shoot = fire & st.shooter[None]
-        rows = np.broadcast_to(np.arange(U), (M, U))
-        flat = (np.arange(M)[:, None] * U + tc).ravel()
-        dmg_h = np.bincount(flat, (shoot * st.hit_h[rows, tc]).ravel(), M * U).reshape(M, U)
-        dmg_s = np.bincount(flat, (shoot * st.hit_s[rows, tc]).ravel(), M * U).reshape(M, U)
+        flat = (self._m * U + tc).ravel()
+        dmg_h = np.bincount(flat, (shoot * st.hit_h[self._u, tc]).ravel(), M * U).reshape(M, U)
+        dmg_s = np.bincount(flat, (shoot * st.hit_s[self._u, tc]).ravel(), M * U).reshape(M, U)
         if st.banes.size:
             b = st.banes
             boom = fire[:, b]
@@ -229,7 +230,7 @@ class Battle:
         if st.healers.size:
             h = st.healers
             ht = tc[:, h]
-            room = st.hp_max[ht] - np.take_along_axis(self.hp, ht, 1)
+            room = st.hp_max[ht] - self.hp[self._m, ht]
             amt = np.minimum(st.heal_amount[h], self.energy[:, h] * st.hp_per_energy[h])
             amt = np.where(fire[:, h], np.minimum(amt, np.maximum(room, 0.0)), 0.0)
             self.energy[:, h] -= amt / st.hp_per_energy[h]
@@ -278,9 +279,9 @@ class Battle:
 
     def _move(self, chase, tc, dx, dy, dist, d_t, movers) -> None:
         st = self.st
-        tx = np.take_along_axis(dx, tc[..., None], 2)[..., 0]
-        ty = np.take_along_axis(dy, tc[..., None], 2)[..., 0]
-        td = np.maximum(np.take_along_axis(dist, tc[..., None], 2)[..., 0], 1e-9)
+        m, u = self._m, self._u
+        tx, ty = dx[m, u, tc], dy[m, u, tc]
+        td = np.maximum(dist[m, u, tc], 1e-9)
         step = np.minimum(st.step_len, np.maximum(d_t - st.range + 0.05, 0.0))
         vx = np.where(chase, tx / td * step, 0.0)
         vy = np.where(chase, ty / td * step, 0.0)

@@ -47,6 +47,7 @@ class Layout:
                 self.onehot[u, order.index(name)] = 1.0
         self.others = np.array([[j for j in range(N) if j != i] for i in range(N)], np.int64)
         self.others = self.others.reshape(N, N - 1)
+        self.rows = np.arange(N)[:, None]
         self.agent_healer = np.isin(np.arange(N), st.healers)
         self.sh_norm = np.where(st.sh_max > 0, 1.0 / np.maximum(st.sh_max, 1e-9), 0.0)
         self.cd_norm = 1.0 / st.smac_cd
@@ -82,42 +83,47 @@ def observations(
 ) -> np.ndarray:
     """Observations [M, N, obs_dim] (float32); see the module docstring for the layout."""
     st, N, E, M = b.st, lay.N, lay.E, b.M
-    sight = cfg.sight_range
+    inv = 1.0 / cfg.sight_range
     alive = b.alive[:, :N]
     health = b.hp / st.hp_max
-    shield = b.sh * lay.sh_norm
-    de, dxe, dye = dist[:, :N, N:], dx[:, :N, N:], dy[:, :N, N:]
-    vis_e = (de < sight) & b.alive[:, None, N:] & alive[:, :, None]
-    en = [avail[:, :, 6 : 6 + E], de / sight, dxe / sight, dye / sight]
-    en.append(np.broadcast_to(health[:, None, N:], (M, N, E)))
+    out = np.zeros((M, N, lay.obs_dim), np.float32)
+    out[:, :, :4] = avail[:, :, 2:6]
+    # Enemies: one [M, N, E, nf_en] view into `out`, filled feature by feature.
+    en = out[:, :, 4 : 4 + E * lay.nf_en].reshape(M, N, E, lay.nf_en)
+    de = dist[:, :N, N:]
+    en[..., 0] = avail[:, :, 6 : 6 + E]
+    en[..., 1] = de * inv
+    en[..., 2] = dx[:, :N, N:] * inv
+    en[..., 3] = dy[:, :N, N:] * inv
+    en[..., 4] = health[:, None, N:]
     if lay.sh_enemy:
-        en.append(np.broadcast_to(shield[:, None, N:], (M, N, E)))
-    en_f = np.stack(en, -1)
+        en[..., 5] = (b.sh[:, N:] * lay.sh_norm[N:])[:, None, :]
     if lay.bits:
-        oh = np.broadcast_to(lay.onehot[N:], (M, N, E, lay.bits))
-        en_f = np.concatenate([en_f, oh], -1)
-    en_f = en_f * vis_e[..., None]
-    o = lay.others
-    da = dist[:, :N, :N][:, np.arange(N)[:, None], o]
-    dxa = dx[:, :N, :N][:, np.arange(N)[:, None], o]
-    dya = dy[:, :N, :N][:, np.arange(N)[:, None], o]
-    vis_a = (da < sight) & b.alive[:, o] & alive[:, :, None]
-    al = [np.ones_like(da), da / sight, dxa / sight, dya / sight, health[:, o]]
+        en[..., 5 + lay.sh_enemy :] = lay.onehot[N:]
+    en *= ((de < cfg.sight_range) & b.alive[:, None, N:] & alive[:, :, None])[..., None]
+    if N > 1:
+        a0 = 4 + E * lay.nf_en
+        al = out[:, :, a0 : a0 + (N - 1) * lay.nf_al].reshape(M, N, N - 1, lay.nf_al)
+        rows, o = lay.rows, lay.others
+        da = dist[:, rows, o]
+        al[..., 0] = 1.0
+        al[..., 1] = da * inv
+        al[..., 2] = dx[:, rows, o] * inv
+        al[..., 3] = dy[:, rows, o] * inv
+        al[..., 4] = health[:, o]
+        if lay.sh_ally:
+            al[..., 5] = b.sh[:, o] * lay.sh_norm[o]
+        if lay.bits:
+            al[..., 5 + lay.sh_ally :] = lay.onehot[o]
+        al *= ((da < cfg.sight_range) & b.alive[:, o] & alive[:, :, None])[..., None]
+    own = out[:, :, lay.obs_dim - lay.nf_own :]
+    own[..., 0] = health[:, :N]
     if lay.sh_ally:
-        al.append(shield[:, o])
-    al_f = np.stack(al, -1)
+        own[..., 1] = b.sh[:, :N] * lay.sh_norm[:N]
     if lay.bits:
-        oh = np.broadcast_to(lay.onehot[o], (M, N, N - 1, lay.bits))
-        al_f = np.concatenate([al_f, oh], -1)
-    al_f = al_f * vis_a[..., None]
-    own = [health[:, :N, None]]
-    if lay.sh_ally:
-        own.append(shield[:, :N, None])
-    if lay.bits:
-        own.append(np.broadcast_to(lay.onehot[:N], (M, N, lay.bits)))
-    parts = [avail[:, :, 2:6], en_f.reshape(M, N, -1), al_f.reshape(M, N, -1), *own]
-    obs = np.concatenate(parts, -1) * alive[:, :, None]
-    return obs.astype(np.float32)
+        own[..., 1 + lay.sh_ally :] = lay.onehot[:N]
+    out *= alive[:, :, None]
+    return out
 
 
 def global_state(b: Battle, lay: Layout, last_action: np.ndarray | None) -> np.ndarray:
