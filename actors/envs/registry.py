@@ -37,7 +37,9 @@ class EnvSpec:
 def _families() -> list[EnvSpec]:
     specs = [
         EnvSpec("matrix/two_step", make_two_step, description="QMIX two-step game (optimum 8)"),
-        EnvSpec("matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"),
+        EnvSpec(
+            "matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"
+        ),
     ]
     specs += _skirmish_specs()
     return specs
@@ -58,11 +60,16 @@ def _skirmish_specs() -> list[EnvSpec]:
     def make_custom(seed: int | None = None, map_file: str | None = None, **options: Any):
         return make_skirmish(seed, map_file=map_file, **options)
 
-    def make_custom_vec(num_envs: int, seed: int | None = None, map_file: str | None = None, **options: Any):
+    def make_custom_vec(
+        num_envs: int, seed: int | None = None, map_file: str | None = None, **options: Any
+    ):
         return make_skirmish_vec(num_envs, seed, map_file=map_file, **options)
 
     custom = EnvSpec(
-        "skirmish/custom", make_custom, make_custom_vec, "skirmish map from a YAML file (map_file=PATH)"
+        "skirmish/custom",
+        make_custom,
+        make_custom_vec,
+        "skirmish map from a YAML file (map_file=PATH)",
     )
     return [builtin(n) for n in builtin_map_names()] + [custom]
 

@@ -42,7 +42,7 @@ def main() -> None:
             ag: jax.random.choice(k, avail[ag].shape[0], p=avail[ag] / avail[ag].sum())
             for k, ag in zip(keys, agents, strict=True)
         }
-        obs, state, rew, dones, infos = env.step(k_step, state, acts)
+        obs, state, rew, _, _ = env.step(k_step, state, acts)
         avail = env.get_avail_actions(state)
         return state, obs, avail, rew
 

@@ -48,7 +48,10 @@ def _spec(map_name: str | None, map_file: str | None) -> MapSpec:
 
 
 def make_skirmish(
-    seed: int | None = None, map_name: str | None = None, map_file: str | None = None, **options: Any
+    seed: int | None = None,
+    map_name: str | None = None,
+    map_file: str | None = None,
+    **options: Any,
 ) -> SkirmishEnv:
     """One skirmish env. Args: a built-in `map_name` or a YAML `map_file`; `options` are
     `SkirmishConfig` fields (unknown ones raise EnvError listing the valid ones)."""

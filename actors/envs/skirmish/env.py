@@ -64,7 +64,9 @@ class SkirmishVecEnv:
         )
         n_e = self.st.N
         enemy_total = float((self.st.hp_max[n_e:] + self.st.sh_max[n_e:]).sum())
-        self.max_reward = enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
+        self.max_reward = (
+            enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
+        )
         self.seed(seed)
         M, N = num_envs, self.st.N
         self.t = np.zeros(M, np.int64)
@@ -109,7 +111,7 @@ class SkirmishVecEnv:
             raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
         acts = np.asarray(actions, np.int64).reshape(M, N)
         self._check(acts, active)
-        b, st = self.battle, self.st
+        b = self.battle
         enemy_before = (b.hp[:, N:] + b.sh[:, N:]).sum(1)
         ally_before = (b.hp[:, :N] + b.sh[:, :N]).sum(1)
         dead_e0, dead_a0 = (~b.alive[:, N:]).sum(1), (~b.alive[:, :N]).sum(1)
@@ -130,7 +132,9 @@ class SkirmishVecEnv:
             k, i = (int(v) for v in np.argwhere(bad)[0])
             valid = np.flatnonzero(avail[k, i]).tolist()
             where = f"env {k}: " if self.num_envs > 1 else ""
-            raise EnvError(f"{where}agent {i} cannot take action {int(acts[k, i])} now; available: {valid}")
+            raise EnvError(
+                f"{where}agent {i} cannot take action {int(acts[k, i])} now; available: {valid}"
+            )
 
     def _set_orders(self, acts: np.ndarray, active: np.ndarray) -> None:
         b, N = self.battle, self.st.N
@@ -162,7 +166,11 @@ class SkirmishVecEnv:
         won = ~lost & ~e_fight
         ended = (lost | won) & active
         won &= active
-        reward = reward + np.where(won, cfg.reward_win, 0.0) + np.where(ended & ~won, cfg.reward_defeat, 0.0)
+        reward = (
+            reward
+            + np.where(won, cfg.reward_win, 0.0)
+            + np.where(ended & ~won, cfg.reward_defeat, 0.0)
+        )
         timeout = active & ~ended & (self.t >= self.spec.episode_limit)
         terminated = ended | timeout | ~active
         if cfg.reward_scale:
@@ -232,7 +240,9 @@ class SkirmishEnv:
     step(actions [N]) -> (reward float, terminated bool, info dict).
     """
 
-    def __init__(self, spec: MapSpec, seed: int | None = None, config: SkirmishConfig | None = None):
+    def __init__(
+        self, spec: MapSpec, seed: int | None = None, config: SkirmishConfig | None = None
+    ):
         self.vec = SkirmishVecEnv(spec, 1, seed=seed, config=config)
         self.map_name = spec.name
         self.n_agents = self.vec.info.n_agents

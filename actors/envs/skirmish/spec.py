@@ -138,7 +138,9 @@ def _layout(at: tuple[float, float], count: int, radius: float, facing: float) -
 
 def _parse_group(g: Any, where: str, facing: float) -> UnitGroup:
     if not isinstance(g, dict):
-        raise EnvError(f"{where}: a unit group must be a mapping with fields {sorted(GROUP_FIELDS)}")
+        raise EnvError(
+            f"{where}: a unit group must be a mapping with fields {sorted(GROUP_FIELDS)}"
+        )
     for key in g:
         if key not in GROUP_FIELDS:
             raise EnvError(f"{where}: unknown field {key!r}; valid fields: {sorted(GROUP_FIELDS)}")
@@ -292,7 +294,11 @@ class SkirmishConfig:
             raise EnvError("step_mul and substeps must be >= 1 with substeps dividing step_mul")
         if not (0 < self.shoot_range <= self.sight_range):
             raise EnvError("need 0 < shoot_range <= sight_range")
-        if self.move_amount <= 0 or self.reward_scale_rate <= 0 or min(self.start_jitter, self.unit_jitter) < 0:
+        if (
+            self.move_amount <= 0
+            or self.reward_scale_rate <= 0
+            or min(self.start_jitter, self.unit_jitter) < 0
+        ):
             raise EnvError("move_amount and reward_scale_rate must be > 0, start_jitter >= 0")
         if not math.isfinite(self.reward_win) or self.reward_defeat > 0:
             raise EnvError("reward_win must be finite and reward_defeat <= 0")

@@ -74,7 +74,8 @@ def avail_actions(b: Battle, lay: Layout, cfg: SkirmishConfig, dist: np.ndarray)
         heal = dist[:, h, :N] <= cfg.shoot_range
         heal &= b.alive[:, None, :N] & st.healable[None, None, :N] & alive[:, h, None]
         avail[:, h, 6:] = 0
-        avail[:, h, 6 : 6 + N] = heal
+        k = min(N, lay.E)  # SMAC has 6 + n_enemies actions: a healer reaches allies < E
+        avail[:, h, 6 : 6 + k] = heal[..., :k]
     return avail
 
 

@@ -39,9 +39,11 @@ def reference_obs_state_avail(env: SkirmishEnv):
         avail[i, 4] = int(x[i] + 1) < st.map_w
         avail[i, 5] = int(x[i] - 1) >= 0
         healer = st.types[i].kind == "healer"
-        targets = [(j, j) for j in range(N) if st.types[j].kind != "healer"] if healer else [
-            (j, N + j) for j in range(E)
-        ]
+        targets = (
+            [(j, j) for j in range(min(N, E)) if st.types[j].kind != "healer"]
+            if healer
+            else [(j, N + j) for j in range(E)]
+        )
         for j, u in targets:
             if alive[u] and math.hypot(x[u] - x[i], y[u] - y[i]) <= shoot:
                 avail[i, 6 + j] = 1
@@ -79,7 +81,7 @@ def reference_obs_state_avail(env: SkirmishEnv):
             continue
         cool = b.energy[0, i] if st.types[i].kind == "healer" else b.cd[0, i]
         state += [hp[i] / st.hp_max[i], cool / st.smac_cd[i], (x[i] - cx) / st.map_w]
-        state += [(y[i] - cy) / st.map_h] + health_feats(i, lay.sh_ally)[1:] + onehot(i)
+        state += [(y[i] - cy) / st.map_h, *health_feats(i, lay.sh_ally)[1:], *onehot(i)]
     for u in range(N, N + E):
         if not alive[u]:
             state += [0.0] * lay.nf_en_state
@@ -102,9 +104,11 @@ def test_tensors_match_smac_reference(name):
         np.testing.assert_allclose(env.get_state(), state, atol=1e-5)
         dead = ~env.battle.alive[0, : env.n_agents]
         assert (env.get_obs()[dead] == 0).all()
-        a = (avail * rng.random(avail.shape)).argmax(-1) if t % 2 else focus_fire_policy(
-            env.vec, rng
-        )[0]
+        a = (
+            (avail * rng.random(avail.shape)).argmax(-1)
+            if t % 2
+            else focus_fire_policy(env.vec, rng)[0]
+        )
         _, term, _ = env.step(a)
         if term:
             env.reset()
@@ -165,7 +169,10 @@ def test_unknown_map_lists_valid_maps():
     [
         ("episode_limit: 0\nallies: []\nenemies: []\n", "'episode_limit'"),
         ("episode_limit: 5\nallies: [{type: tank, count: 1, at: [1, 1]}]\n", "'allies[0]'.type"),
-        ("episode_limit: 5\nallies: [{type: marine, count: -1, at: [1, 1]}]\n", "'allies[0]'.count"),
+        (
+            "episode_limit: 5\nallies: [{type: marine, count: -1, at: [1, 1]}]\n",
+            "'allies[0]'.count",
+        ),
         ("episode_limit: 5\nspeed: 3\n", "'speed'"),
     ],
 )
@@ -180,9 +187,12 @@ def test_bad_custom_map_names_field_and_file(tmp_path, text, field):
 def test_custom_map_file_builds_variant(tmp_path):
     path = tmp_path / "bane_12z.yaml"
     path.write_text(
-        "episode_limit: 150\ntype_order: {allies: [baneling, zergling], enemies: [baneling, zergling]}\n"
-        "allies: [{type: zergling, count: 12, at: [11, 16]}, {type: baneling, count: 4, at: [8, 16]}]\n"
-        "enemies: [{type: zergling, count: 20, at: [21, 16]}, {type: baneling, count: 4, at: [24, 16]}]\n"
+        "episode_limit: 150\n"
+        "type_order: {allies: [baneling, zergling], enemies: [baneling, zergling]}\n"
+        "allies: [{type: zergling, count: 12, at: [11, 16]},\n"
+        "         {type: baneling, count: 4, at: [8, 16]}]\n"
+        "enemies: [{type: zergling, count: 20, at: [21, 16]},\n"
+        "          {type: baneling, count: 4, at: [24, 16]}]\n"
     )
     venv = SkirmishVecEnv(load_map_file(path), 2, seed=0)
     assert (venv.info.n_agents, venv.info.n_enemies, venv.info.episode_limit) == (16, 24, 150)

@@ -23,7 +23,9 @@ ALL_MAPS = [
 VARIANT_AGENTS = {"bane_med": 19, "bane_small": 14, "bane_no_z": 4}
 
 
-@pytest.mark.parametrize(("name", "obs", "state", "actions", "agents", "enemies", "limit"), SMAC_SIZES)
+@pytest.mark.parametrize(
+    ("name", "obs", "state", "actions", "agents", "enemies", "limit"), SMAC_SIZES
+)
 def test_sizes_equal_smac(name, obs, state, actions, agents, enemies, limit):
     env = make_env(f"skirmish/{name}", seed=0)
     info = env.get_env_info()
