@@ -82,9 +82,7 @@ class VecEnv(Protocol):
     info: EnvInfo
 
     def reset(self) -> None: ...
-    def step(
-        self, actions: np.ndarray, active: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, list[dict]]: ...
+    def step(self, actions: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict]]: ...
     def get_obs(self) -> np.ndarray: ...
     def get_state(self) -> np.ndarray: ...
     def get_avail_actions(self) -> np.ndarray: ...
@@ -131,9 +129,7 @@ class SerialVecEnv:
         for env in self.envs:
             env.reset()
 
-    def step(
-        self, actions: np.ndarray, active: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    def step(self, actions: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict]]:
         reward = np.zeros(self.num_envs, np.float32)
         terminated = np.ones(self.num_envs, bool)
         infos: list[dict] = [{} for _ in range(self.num_envs)]

@@ -36,15 +36,11 @@ class MatrixGameConfig:
         payoffs: the 2x2 payoff matrix of the game picked by each step-1 joint action.
     """
 
-    payoffs: dict[str, tuple[tuple[float, ...], ...]] = field(
-        default_factory=lambda: dict(FOUR_GAMES)
-    )
+    payoffs: dict[str, tuple[tuple[float, ...], ...]] = field(default_factory=lambda: dict(FOUR_GAMES))
 
     def validate(self) -> None:
         if set(self.payoffs) != set(FOUR_GAMES):
-            raise EnvError(
-                f"env.payoffs needs exactly the keys {sorted(FOUR_GAMES)}, got {sorted(self.payoffs)}"
-            )
+            raise EnvError(f"env.payoffs needs exactly the keys {sorted(FOUR_GAMES)}, got {sorted(self.payoffs)}")
         for key, m in self.payoffs.items():
             arr = np.asarray(m, dtype=np.float64)
             if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):

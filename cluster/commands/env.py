@@ -41,9 +41,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         return 0
     cols = ["id", "n_agents", "n_enemies", "obs_shape", "state_shape", "n_actions", "episode_limit"]
     heads = ["id", "agents", "enemies", "obs", "state", "actions", "limit"]
-    widths = [
-        max(len(h), *(len(str(r[c])) for r in rows)) for h, c in zip(heads, cols, strict=True)
-    ]
+    widths = [max(len(h), *(len(str(r[c])) for r in rows)) for h, c in zip(heads, cols, strict=True)]
     print("  ".join(h.ljust(w) for h, w in zip(heads, widths, strict=True)))
     for r in rows:
         print("  ".join(str(r[c]).ljust(w) for c, w in zip(cols, widths, strict=True)))
