@@ -14,6 +14,7 @@ from typing import Any
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
 from actors.envs.skirmish import builtin_map_names, make_skirmish, make_skirmish_vec
+from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,10 @@ def _families() -> list[EnvSpec]:
         ),
     ]
     specs += _skirmish_specs()
+    specs += [
+        EnvSpec(f"smac/{m}", make_smac_factory(m), description=f"StarCraft II SMAC {m} (needs SC2)")
+        for m in SMAC_MAPS
+    ]
     return specs
 
 
