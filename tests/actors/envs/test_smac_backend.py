@@ -9,7 +9,6 @@ from actors.envs.skirmish import SkirmishEnv, builtin_map, make_skirmish
 from actors.envs.skirmish.spec import parse_map
 from actors.envs.smac_backend import SmacEnv, load_starcraft2env
 
-
 FAR_APART = parse_map(
     "far_apart",
     {
