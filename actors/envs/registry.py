@@ -13,6 +13,8 @@ from typing import Any
 
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
+from actors.envs.skirmish import builtin_map_names, make_skirmish, make_skirmish_vec
+from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,41 @@ def _families() -> list[EnvSpec]:
             "matrix/four_game", make_four_game, description="seed Fig. 5.1 four-game (optimum 8)"
         ),
     ]
+    specs += _skirmish_specs()
+    specs += [
+        EnvSpec(f"smac/{m}", make_smac_factory(m), description=f"StarCraft II SMAC {m} (needs SC2)")
+        for m in SMAC_MAPS
+    ]
     return specs
+
+
+def _skirmish_specs() -> list[EnvSpec]:
+    """`skirmish/<map>` for each built-in map, and `skirmish/custom` (arg `map_file=PATH`)."""
+
+    def builtin(name: str) -> EnvSpec:
+        def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
+            return make_skirmish(seed, map_name=name, **options)
+
+        def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
+            return make_skirmish_vec(num_envs, seed, map_name=name, **options)
+
+        return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, SMAC map {name}")
+
+    def make_custom(seed: int | None = None, map_file: str | None = None, **options: Any):
+        return make_skirmish(seed, map_file=map_file, **options)
+
+    def make_custom_vec(
+        num_envs: int, seed: int | None = None, map_file: str | None = None, **options: Any
+    ):
+        return make_skirmish_vec(num_envs, seed, map_file=map_file, **options)
+
+    custom = EnvSpec(
+        "skirmish/custom",
+        make_custom,
+        make_custom_vec,
+        "skirmish map from a YAML file (map_file=PATH)",
+    )
+    return [builtin(n) for n in builtin_map_names()] + [custom]
 
 
 REGISTRY: dict[str, EnvSpec] = {spec.id: spec for spec in _families()}

@@ -9,10 +9,11 @@ from __future__ import annotations
 import argparse
 
 from cluster.bench import codec as codec_bench
+from cluster.bench import env as env_bench
 from cluster.bench import matrix as matrix_bench
 from cluster.bench import service as service_bench
 
-BENCHES: list = [codec_bench, service_bench, matrix_bench]
+BENCHES: list = [env_bench, codec_bench, service_bench, matrix_bench]
 
 
 def register(sub: argparse._SubParsersAction) -> None:

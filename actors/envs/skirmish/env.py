@@ -1,0 +1,313 @@
+"""The skirmish envs: `SkirmishVecEnv` (M battles per NumPy call, what rollout actors use)
+and `SkirmishEnv` (one battle, SMAC's `StarCraft2Env` API, a drop-in for pymarl loops).
+
+Reward, termination and statistics follow SMAC: damage dealt to enemy health and shields
+plus `reward_death_value` per kill plus `reward_win` for a win, divided by
+`max_reward / reward_scale_rate` where max_reward = sum of enemy health and shields +
+death value x n_enemies + win reward, so a perfect episode returns 20. A timeout ends the
+episode (terminated True) with `info["episode_limit"] = True` and is not a win.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from actors.envs.base import EnvError, EnvInfo
+from actors.envs.skirmish.sim import ATTACK, IDLE, MOVE, Battle, Statics
+from actors.envs.skirmish.spec import MapSpec, SkirmishConfig
+from actors.envs.skirmish.views import Layout, avail_actions, global_state, observations
+
+log = logging.getLogger(__name__)
+_DIRS = np.array([[0, 0], [0, 0], [0, 1], [0, -1], [1, 0], [-1, 0]], np.float64)
+
+
+class SkirmishVecEnv:
+    """M skirmish battles of one map stepped together (the `VecEnv` protocol).
+
+    Args:
+        spec: the map.
+        num_envs: M.
+        seed: env k draws its randomness from `np.random.default_rng(seed + k)`, so it plays
+            exactly like `SkirmishEnv(spec, seed=seed + k)`. None: fresh entropy.
+        config: simulator and SMAC options.
+
+    Shapes: step(actions [M, N] int, active [M] bool) -> reward [M], terminated [M], M infos;
+    get_obs() [M, N, obs_dim]; get_state() [M, state_dim]; get_avail_actions() [M, N, A].
+    """
+
+    def __init__(
+        self,
+        spec: MapSpec,
+        num_envs: int,
+        seed: int | None = None,
+        config: SkirmishConfig | None = None,
+    ):
+        self.cfg = config or SkirmishConfig()
+        self.cfg.validate()
+        if num_envs < 1:
+            raise EnvError(f"num_envs must be >= 1, got {num_envs}")
+        self.spec, self.num_envs = spec, num_envs
+        self.st = Statics(spec, self.cfg)
+        self.lay = Layout(spec, self.st, self.cfg)
+        self.battle = Battle(self.st, self.cfg, num_envs)
+        self.info = EnvInfo(
+            n_agents=self.st.N,
+            n_actions=self.lay.n_actions,
+            obs_shape=self.lay.obs_dim,
+            state_shape=self.lay.state_dim,
+            episode_limit=spec.episode_limit,
+            has_wins=True,
+            n_enemies=self.st.E,
+        )
+        n_e = self.st.N
+        enemy_total = float((self.st.hp_max[n_e:] + self.st.sh_max[n_e:]).sum())
+        self.max_reward = (
+            enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
+        )
+        self.seed(seed)
+        M, N = num_envs, self.st.N
+        self.t = np.zeros(M, np.int64)
+        self.done = np.ones(M, bool)
+        self.last_action = np.zeros((M, N, self.lay.n_actions), np.float32)
+        self.stats = {"battles_won": 0, "battles_game": 0, "timeouts": 0}
+        self._cache: dict[str, Any] = {}
+
+    def seed(self, seed: int | None = None) -> None:
+        """Re-seed every env's generator (env k: seed + k); applies from the next reset."""
+        self._seed = seed
+        self.rngs = [
+            np.random.default_rng(None if seed is None else seed + k) for k in range(self.num_envs)
+        ]
+
+    def reset(self) -> None:
+        """Start a new episode in every env."""
+        envs = np.arange(self.num_envs)
+        self.battle.reset(envs, self.rngs)
+        self.t[:] = 0
+        self.done[:] = False
+        self.last_action[:] = 0
+        self._cache = {}
+
+    def reset_envs(self, envs: np.ndarray) -> None:
+        """Start a new episode in the envs with indices `envs` only (the others carry on)."""
+        envs = np.asarray(envs, np.int64).reshape(-1)
+        self.battle.reset(envs, self.rngs)
+        self.t[envs] = 0
+        self.done[envs] = False
+        self.last_action[envs] = 0
+        self._cache = {}
+
+    def step(
+        self, actions: np.ndarray, active: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step."""
+        M, N = self.num_envs, self.st.N
+        active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M)
+        if (active & self.done).any():
+            k = int(np.flatnonzero(active & self.done)[0])
+            raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
+        acts = np.asarray(actions, np.int64).reshape(M, N)
+        self._check(acts, active)
+        b = self.battle
+        enemy_before = (b.hp[:, N:] + b.sh[:, N:]).sum(1)
+        ally_before = (b.hp[:, :N] + b.sh[:, :N]).sum(1)
+        dead_e0, dead_a0 = (~b.alive[:, N:]).sum(1), (~b.alive[:, :N]).sum(1)
+        self._set_orders(acts, active)
+        for _ in range(self.cfg.substeps):
+            b.substep(active)
+        self.t += active
+        self._cache = {}
+        return self._outcome(active, enemy_before, ally_before, dead_e0, dead_a0)
+
+    def _check(self, acts: np.ndarray, active: np.ndarray) -> None:
+        avail = self.get_avail_actions()
+        A = self.lay.n_actions
+        inside = (acts >= 0) & (acts < A)
+        ok = inside & (np.take_along_axis(avail, np.clip(acts, 0, A - 1)[..., None], 2)[..., 0] > 0)
+        bad = ~ok & active[:, None]
+        if bad.any():
+            k, i = (int(v) for v in np.argwhere(bad)[0])
+            valid = np.flatnonzero(avail[k, i]).tolist()
+            where = f"env {k}: " if self.num_envs > 1 else ""
+            raise EnvError(
+                f"{where}agent {i} cannot take action {int(acts[k, i])} now; available: {valid}"
+            )
+
+    def _set_orders(self, acts: np.ndarray, active: np.ndarray) -> None:
+        b, N = self.battle, self.st.N
+        act = active[:, None]
+        order = np.where(acts >= 6, ATTACK, np.where(acts >= 2, MOVE, IDLE))
+        healer = self.lay.agent_healer[None]
+        tgt = np.where(acts >= 6, np.where(healer, acts - 6, N + acts - 6), -1)
+        b.order[:, :N] = np.where(act, order, b.order[:, :N])
+        b.order_tgt[:, :N] = np.where(act, tgt, b.order_tgt[:, :N])
+        b.move_dir[:, :N] = np.where(act[..., None], _DIRS[np.minimum(acts, 5)], b.move_dir[:, :N])
+        onehot = np.eye(self.lay.n_actions, dtype=np.float32)[acts]
+        self.last_action = np.where(act[..., None], onehot, self.last_action)
+
+    def _outcome(self, active, enemy_before, ally_before, dead_e0, dead_a0):
+        b, st, cfg, N = self.battle, self.st, self.cfg, self.st.N
+        kills = (~b.alive[:, N:]).sum(1) - dead_e0
+        d_enemy = enemy_before - (b.hp[:, N:] + b.sh[:, N:]).sum(1)
+        reward = d_enemy + cfg.reward_death_value * kills
+        if cfg.reward_only_positive:
+            reward = np.abs(reward)
+        else:
+            losses = (~b.alive[:, :N]).sum(1) - dead_a0
+            d_ally = ally_before - (b.hp[:, :N] + b.sh[:, :N]).sum(1)
+            reward = reward - 0.5 * (d_ally + cfg.reward_death_value * losses)
+        fighter = ~np.isin(np.arange(st.U), st.healers)
+        a_fight = (b.alive[:, :N] & fighter[:N]).any(1)
+        e_fight = (b.alive[:, N:] & fighter[N:]).any(1)
+        lost = ~a_fight
+        won = ~lost & ~e_fight
+        ended = (lost | won) & active
+        won &= active
+        reward = (
+            reward
+            + np.where(won, cfg.reward_win, 0.0)
+            + np.where(ended & ~won, cfg.reward_defeat, 0.0)
+        )
+        timeout = active & ~ended & (self.t >= self.spec.episode_limit)
+        terminated = ended | timeout | ~active
+        if cfg.reward_scale:
+            reward = reward / (self.max_reward / cfg.reward_scale_rate)
+        reward = np.where(active, reward, 0.0).astype(np.float32)
+        self.done |= terminated & active
+        self.stats["battles_game"] += int((ended | timeout).sum())
+        self.stats["battles_won"] += int(won.sum())
+        self.stats["timeouts"] += int(timeout.sum())
+        infos: list[dict[str, Any]] = []
+        for k in range(self.num_envs):
+            if not active[k]:
+                infos.append({})
+                continue
+            info = {"battle_won": bool(won[k]), "episode_limit": bool(timeout[k])}
+            if terminated[k]:
+                info["dead_allies"] = int((~b.alive[k, :N]).sum())
+                info["dead_enemies"] = int((~b.alive[k, N:]).sum())
+            infos.append(info)
+        return reward, terminated, infos
+
+    # -- views (cached until the next step or reset) ----------------------------------------
+    def _views(self) -> dict[str, Any]:
+        if "obs" not in self._cache:
+            dx, dy, dist = self.battle.pairwise()
+            avail = avail_actions(self.battle, self.lay, self.cfg, dist)
+            self._cache["avail"] = avail
+            self._cache["obs"] = observations(self.battle, self.lay, self.cfg, avail, dx, dy, dist)
+        return self._cache
+
+    def get_avail_actions(self) -> np.ndarray:
+        if "avail" not in self._cache:
+            _, _, dist = self.battle.pairwise()
+            self._cache["avail"] = avail_actions(self.battle, self.lay, self.cfg, dist)
+        return self._cache["avail"]
+
+    def get_obs(self) -> np.ndarray:
+        return self._views()["obs"]
+
+    def get_state(self) -> np.ndarray:
+        if "state" not in self._cache:
+            last = self.last_action if self.cfg.state_last_action else None
+            self._cache["state"] = global_state(self.battle, self.lay, last)
+        return self._cache["state"]
+
+    def get_stats(self) -> dict[str, Any]:
+        """SMAC's statistics summed over the M envs."""
+        s = dict(self.stats)
+        s["battles_draw"] = s["timeouts"]
+        s["win_rate"] = s["battles_won"] / s["battles_game"] if s["battles_game"] else 0.0
+        s["restarts"] = 0
+        return s
+
+    def close(self) -> None:
+        self._cache = {}
+
+
+class SkirmishEnv:
+    """One skirmish battle with SMAC's `StarCraft2Env` API (a pymarl drop-in).
+
+    Args:
+        spec: the map.
+        seed: seeds the start-position noise; the same seed replays the same episodes.
+        config: simulator and SMAC options.
+
+    Shapes: get_obs() [N, obs_dim]; get_state() [state_dim]; get_avail_actions() [N, A];
+    step(actions [N]) -> (reward float, terminated bool, info dict).
+    """
+
+    def __init__(
+        self, spec: MapSpec, seed: int | None = None, config: SkirmishConfig | None = None
+    ):
+        self.vec = SkirmishVecEnv(spec, 1, seed=seed, config=config)
+        self.map_name = spec.name
+        self.n_agents = self.vec.info.n_agents
+        self.n_enemies = self.vec.info.n_enemies
+        self.n_actions = self.vec.info.n_actions
+        self.episode_limit = self.vec.info.episode_limit
+        self._episode_steps = 0
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        self.vec.reset()
+        self._episode_steps = 0
+        return self.get_obs(), self.get_state()
+
+    def step(self, actions) -> tuple[float, bool, dict[str, Any]]:
+        acts = np.asarray(actions, np.int64).reshape(1, -1)
+        if acts.shape[1] != self.n_agents:
+            raise EnvError(f"expected {self.n_agents} actions (one per agent), got {acts.shape[1]}")
+        reward, terminated, infos = self.vec.step(acts, np.ones(1, bool))
+        self._episode_steps += 1
+        return float(reward[0]), bool(terminated[0]), infos[0]
+
+    def get_obs(self) -> np.ndarray:
+        return self.vec.get_obs()[0]
+
+    def get_obs_agent(self, agent_id: int) -> np.ndarray:
+        return self.get_obs()[agent_id]
+
+    def get_obs_size(self) -> int:
+        return self.vec.info.obs_shape
+
+    def get_state(self) -> np.ndarray:
+        return self.vec.get_state()[0]
+
+    def get_state_size(self) -> int:
+        return self.vec.info.state_shape
+
+    def get_avail_actions(self) -> np.ndarray:
+        return self.vec.get_avail_actions()[0]
+
+    def get_avail_agent_actions(self, agent_id: int) -> np.ndarray:
+        return self.get_avail_actions()[agent_id]
+
+    def get_total_actions(self) -> int:
+        return self.n_actions
+
+    def get_env_info(self) -> dict[str, Any]:
+        d: dict[str, Any] = self.vec.info.as_smac_dict()
+        d.update(n_enemies=self.n_enemies, has_wins=True, map_name=self.map_name)
+        return d
+
+    def get_stats(self) -> dict[str, Any]:
+        return self.vec.get_stats()
+
+    def seed(self, seed: int | None = None) -> int | None:
+        """Re-seed (from the next reset) when `seed` is given; return the current seed."""
+        if seed is not None:
+            self.vec.seed(seed)
+        return self.vec._seed
+
+    def render(self) -> None:
+        """Use `actors.envs.skirmish.render.render_episode` for GIFs."""
+
+    def close(self) -> None:
+        self.vec.close()
+
+    @property
+    def battle(self) -> Battle:
+        return self.vec.battle

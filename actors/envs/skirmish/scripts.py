@@ -1,0 +1,125 @@
+"""Scripted (privileged) policies for sanity tests and map comparisons, batched over envs.
+
+Each policy is `policy(venv, rng) -> actions [M, N]` for a `SkirmishVecEnv` and always picks
+available actions. They read the simulator's state directly (they are baselines, not agents).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from actors.envs.skirmish.env import SkirmishVecEnv
+from actors.envs.skirmish.spec import KINDS
+
+Policy = Callable[[SkirmishVecEnv, np.random.Generator], np.ndarray]
+NORTH, SOUTH, EAST, WEST = 2, 3, 4, 5
+
+
+def random_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
+    """Uniform over each agent's available actions."""
+    avail = venv.get_avail_actions()
+    return (avail * rng.random(avail.shape)).argmax(-1)
+
+
+def _toward(venv: SkirmishVecEnv, sign: float) -> np.ndarray:
+    """Move action [M, N] toward (sign=+1) or away from (-1) the nearest living enemy,
+    along the larger axis; falls back to stop when that move is unavailable."""
+    b, N = venv.battle, venv.st.N
+    dx, dy, dist = b.pairwise()
+    d = np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf)
+    j = d.argmin(-1)
+    tx = np.take_along_axis(dx[:, :N, N:], j[..., None], 2)[..., 0] * sign
+    ty = np.take_along_axis(dy[:, :N, N:], j[..., None], 2)[..., 0] * sign
+    horiz = np.abs(tx) >= np.abs(ty)
+    move = np.where(horiz, np.where(tx > 0, EAST, WEST), np.where(ty > 0, NORTH, SOUTH))
+    avail = venv.get_avail_actions()
+    ok = np.take_along_axis(avail, move[..., None], 2)[..., 0] > 0
+    return np.where(ok, move, 1)
+
+
+def _attack_or(venv: SkirmishVecEnv, score: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Attack the available enemy with the lowest `score` [M, N, E], else `fallback`."""
+    avail = venv.get_avail_actions()
+    can = avail[:, :, 6:] > 0
+    s = np.where(can, score, np.inf)
+    best = s.argmin(-1)
+    acts = np.where(can.any(-1), 6 + best, fallback)
+    dead = avail[:, :, 0] > 0
+    return np.where(dead, 0, acts)
+
+
+def _advance(venv: SkirmishVecEnv) -> np.ndarray:
+    """Move toward the nearest enemy until one is in sight range, then hold (stop), so the
+    enemy walks into range rather than getting the first volley."""
+    b, N = venv.battle, venv.st.N
+    _, _, dist = b.pairwise()
+    seen = (np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf) < venv.cfg.sight_range).any(-1)
+    return np.where(seen, 1, _toward(venv, 1.0))
+
+
+def focus_fire_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
+    """All attack the weakest enemy (health + shield) in range, else advance."""
+    b, N = venv.battle, venv.st.N
+    weak = (b.hp[:, N:] + b.sh[:, N:])[:, None, :]
+    score = np.broadcast_to(weak + 1e-6 * np.arange(venv.st.E), (b.M, N, venv.st.E))
+    return _attack_or(venv, score, _advance(venv))
+
+
+def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
+    """Everyone attacks the nearest enemy in range, else advances."""
+    b, N = venv.battle, venv.st.N
+    _, _, dist = b.pairwise()
+    return _attack_or(venv, dist[:, :N, N:], _advance(venv))
+
+
+def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
+    """Banelings charge the nearest enemy; zerglings step back while any baneling lives,
+    then attack the nearest enemy."""
+    b, st, N = venv.battle, venv.st, venv.st.N
+    nearest = nearest_policy(venv, rng)
+    is_bane = st.kind[:N] == KINDS.index("baneling")
+    banes_alive = (b.alive & (st.kind == KINDS.index("baneling"))[None]).any(1)
+    back = _toward(venv, -1.0)
+    step_back = ~is_bane[None] & banes_alive[:, None]
+    acts = np.where(step_back, back, nearest)
+    dead = venv.get_avail_actions()[:, :, 0] > 0
+    return np.where(dead, 0, acts)
+
+
+POLICIES: dict[str, Policy] = {
+    "random": random_policy,
+    "focus_fire": focus_fire_policy,
+    "nearest": nearest_policy,
+    "bane_charge": bane_charge_policy,
+}
+
+
+def evaluate(venv: SkirmishVecEnv, policy: Policy, episodes: int, seed: int = 0) -> dict:
+    """Play `episodes` episodes (in rounds of M) and return win rate and mean return."""
+    rng = np.random.default_rng(seed)
+    wins, returns, lengths = [], [], []
+    while len(wins) < episodes:
+        venv.reset()
+        active = np.ones(venv.num_envs, bool)
+        ret = np.zeros(venv.num_envs)
+        won = np.zeros(venv.num_envs, bool)
+        t = np.zeros(venv.num_envs, np.int64)
+        while active.any():
+            r, term, infos = venv.step(policy(venv, rng), active)
+            ret += r
+            t += active
+            for k in np.flatnonzero(active & term):
+                won[k] = infos[k]["battle_won"]
+            active &= ~term
+        wins += won.tolist()
+        returns += ret.tolist()
+        lengths += t.tolist()
+    wins, returns, lengths = wins[:episodes], returns[:episodes], lengths[:episodes]
+    return {
+        "episodes": episodes,
+        "win_rate": float(np.mean(wins)),
+        "mean_return": float(np.mean(returns)),
+        "mean_length": float(np.mean(lengths)),
+    }

@@ -1,0 +1,98 @@
+"""`credit bench env`: env-steps/s of a batched env under random valid actions, optionally
+side by side with JaxMARL's SMAX.
+
+    credit bench env --env skirmish/3m --num-envs 64 --steps 2000 [--vs-smax]
+        [--smax-python /tmp/smaxvenv/bin/python] [--out results/bench/x.json]
+
+Each timed step reads observations, state and available actions, samples a uniformly random
+available action per agent and steps every env; finished envs are reset in place (the
+rollout actor's loop). `--vs-smax` runs `cluster/bench/smax_runner.py` on the same map and
+number of envs (JIT compile excluded) with `--smax-python` (default: this Python, which then
+needs `jaxmarl`, the `smax` extra) and adds `smax_env_steps_per_s` and `ratio` (ours / SMAX).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from actors.envs.registry import make_vec_env
+from cluster.bench.common import emit
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("env", help="env-steps/s under random valid actions (optionally vs SMAX)")
+    p.add_argument("--env", default="skirmish/3m", help="registered env id")
+    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--steps", type=int, default=1000, help="vector steps timed")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--vs-smax", action="store_true", help="also time JaxMARL SMAX, same map")
+    p.add_argument("--smax-python", default=sys.executable, help="python that has jaxmarl")
+    p.add_argument("--out", default=None, help="also write the JSON here")
+    p.set_defaults(func=cmd_env)
+
+
+def time_env(env_id: str, num_envs: int, steps: int, seed: int = 0) -> dict:
+    """Run `steps` vector steps of random valid actions; return throughput figures."""
+    venv = make_vec_env(env_id, num_envs, seed=seed)
+    rng = np.random.default_rng(seed)
+    venv.reset()
+    active = np.ones(num_envs, bool)
+    episodes = 0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        venv.get_obs()
+        venv.get_state()
+        avail = venv.get_avail_actions()
+        actions = (avail * rng.random(avail.shape)).argmax(-1)
+        _, terminated, _ = venv.step(actions, active)
+        if terminated.any():
+            episodes += int(terminated.sum())
+            _reset_done(venv, terminated)
+    dt = time.perf_counter() - t0
+    n = venv.info.n_agents
+    return {
+        "env": env_id,
+        "num_envs": num_envs,
+        "steps": steps,
+        "seconds": dt,
+        "episodes": episodes,
+        "env_steps_per_s": num_envs * steps / dt,
+        "agent_steps_per_s": num_envs * steps * n / dt,
+    }
+
+
+def _reset_done(venv, done: np.ndarray) -> None:
+    """Reset only the finished envs where the VecEnv supports it, else all of them."""
+    reset_some = getattr(venv, "reset_envs", None)
+    if reset_some is not None:
+        reset_some(np.flatnonzero(done))
+    else:
+        venv.reset()
+
+
+def time_smax(python: str, map_name: str, num_envs: int, steps: int) -> dict:
+    runner = Path(__file__).with_name("smax_runner.py")
+    cmd = [python, str(runner), "--map", map_name, "--num-envs", str(num_envs)]
+    cmd += ["--steps", str(steps)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"SMAX runner failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def cmd_env(args: argparse.Namespace) -> int:
+    figures = time_env(args.env, args.num_envs, args.steps, args.seed)
+    if args.vs_smax:
+        map_name = args.env.split("/", 1)[1]
+        smax = time_smax(args.smax_python, map_name, args.num_envs, args.steps)
+        figures.update(smax)
+        figures["ratio"] = figures["env_steps_per_s"] / smax["smax_env_steps_per_s"]
+    emit("env", figures, args.out)
+    return 0

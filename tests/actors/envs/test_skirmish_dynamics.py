@@ -1,0 +1,139 @@
+"""Combat mechanics with hand-computed outcomes, seeding, and the 3m sanity thresholds."""
+
+import numpy as np
+import pytest
+
+from actors.envs.skirmish import SkirmishEnv, SkirmishVecEnv, make_skirmish_vec
+from actors.envs.skirmish.scripts import POLICIES, evaluate
+from actors.envs.skirmish.spec import make_config, parse_map
+
+
+def battle_env(allies, enemies, **options) -> SkirmishEnv:
+    raw = {"episode_limit": 50, "allies": allies, "enemies": enemies}
+    cfg = make_config(start_jitter=0.0, unit_jitter=0.0, **options)
+    env = SkirmishEnv(parse_map("t", raw, "<test>"), seed=0, config=cfg)
+    env.reset()
+    return env
+
+
+def test_baneling_splash_kills_clumped_zerglings_and_itself():
+    # 35 (16 + 19 vs light) to 35-hp zerglings within 2.2 of the blast; the far one survives.
+    env = battle_env(
+        [{"type": "baneling", "count": 1, "positions": [[10, 10]]}],
+        [{"type": "zergling", "count": 3, "positions": [[10.8, 10], [11.5, 10.9], [16, 10]]}],
+    )
+    b = env.battle
+    env.step([6])  # attack enemy 0
+    assert not b.alive[0, 0]
+    assert list(b.alive[0, 1:]) == [False, False, True]
+    assert b.hp[0, 3] == pytest.approx(35.0)
+
+
+def test_shields_absorb_before_armoured_health():
+    # Two marines (6 damage) on a stalker (80/80, armour 1): shields first, no armour on them.
+    env = battle_env(
+        [{"type": "marine", "count": 2, "positions": [[10, 10], [10, 11]]}],
+        [{"type": "stalker", "count": 1, "positions": [[14, 10.5]]}],
+    )
+    b = env.battle
+    b.cd[0, 2] = 1e9  # the stalker holds fire
+    env.step([6, 6])
+    assert b.sh[0, 2] == pytest.approx(80 - 12)
+    assert b.hp[0, 2] == pytest.approx(80)
+    b.sh[0, 2] = 3.0
+    b.cd[0, :2] = 0.0
+    env.step([6, 6])
+    # 12 raw: 3 absorbed, the other 9/12 of it reaches health at 5 per hit after armour.
+    assert b.sh[0, 2] == pytest.approx(0)
+    assert b.hp[0, 2] == pytest.approx(80 - 10 * 9 / 12)
+
+
+def test_medivac_heals_with_energy():
+    env = battle_env(
+        [
+            {"type": "medivac", "count": 1, "positions": [[10, 10]]},
+            {"type": "marine", "count": 1, "positions": [[11, 10]]},
+        ],
+        [{"type": "marine", "count": 1, "positions": [[30, 30]]}],
+        substeps=1,
+    )
+    b, st = env.battle, env.vec.st
+    med = next(i for i in range(2) if st.types[i].kind == "healer")
+    mar = 1 - med
+    b.hp[0, mar] = 20.0
+    energy = b.energy[0, med]
+    acts = [1, 1]
+    acts[med] = 6 + mar
+    env.step(acts)
+    healed = 12.6 / 22.4 * 8
+    assert b.hp[0, mar] == pytest.approx(20 + healed)
+    assert b.energy[0, med] == pytest.approx(energy - healed / 3 + 0.7875 / 22.4 * 8)
+
+
+def test_colossus_line_splash_hits_units_beside_the_target():
+    env = battle_env(
+        [{"type": "colossus", "count": 1, "positions": [[10, 10]]}],
+        [{"type": "zergling", "count": 3, "positions": [[15, 10], [15, 11], [15, 13]]}],
+    )
+    b = env.battle
+    env.step([6])
+    # 2 x (10 + 5 vs light) = 30 to the target and to the zergling 1 cell along the line;
+    # the one 3 cells away is outside the 1.4 half-length.
+    np.testing.assert_allclose(b.hp[0, 1:], [5.0, 5.0, 35.0])
+
+
+def test_overlapping_units_are_pushed_apart():
+    env = battle_env(
+        [{"type": "zergling", "count": 2, "positions": [[10, 10], [10.2, 10]]}],
+        [{"type": "zergling", "count": 1, "positions": [[30, 30]]}],
+    )
+    b = env.battle
+    env.step([1, 1])
+    gap = abs(b.x[0, 1] - b.x[0, 0])
+    assert gap >= 0.75 - 1e-6  # two radii of 0.375
+
+
+def test_moves_go_the_unit_speed_per_step():
+    env = battle_env(
+        [{"type": "marine", "count": 1, "positions": [[10, 10]]}],
+        [{"type": "marine", "count": 1, "positions": [[30, 30]]}],
+    )
+    env.step([4])  # east
+    assert env.battle.x[0, 0] == pytest.approx(10 + 3.15 / 22.4 * 8)
+
+
+def test_vec_env_k_plays_like_single_env_seeded_seed_plus_k():
+    venv = make_skirmish_vec(3, seed=11, map_name="2s3z")
+    singles = [SkirmishVecEnv(venv.spec, 1, seed=11 + k) for k in range(3)]
+    venv.reset()
+    for s in singles:
+        s.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        acts = POLICIES["random"](venv, rng)
+        r, _, _ = venv.step(acts, ~venv.done)
+        for k, s in enumerate(singles):
+            if not s.done[0]:
+                rs, _, _ = s.step(acts[k : k + 1], np.ones(1, bool))
+                assert rs[0] == pytest.approx(r[k])
+            np.testing.assert_array_equal(venv.get_obs()[k], s.get_obs()[0])
+        if venv.done.all():
+            break
+
+
+def test_same_seed_same_episode_other_seed_differs():
+    def first_obs(seed):
+        v = make_skirmish_vec(1, seed=seed, map_name="3m")
+        v.reset()
+        return v.get_state()[0]
+
+    np.testing.assert_array_equal(first_obs(5), first_obs(5))
+    assert not np.array_equal(first_obs(5), first_obs(6))
+
+
+def test_3m_focus_fire_wins_and_random_loses():
+    venv = make_skirmish_vec(100, seed=0, map_name="3m")
+    focus = evaluate(venv, POLICIES["focus_fire"], 100, seed=0)
+    rand = evaluate(venv, POLICIES["random"], 100, seed=0)
+    assert focus["win_rate"] >= 0.8
+    assert rand["win_rate"] <= 0.1
