@@ -9,6 +9,7 @@ from typing import Any
 
 from actors.envs.registry import get_spec
 from actors.policy import ExplorationConfig
+from buffer_service.config import RateLimiterConfig, TableConfig
 from cluster.config import ConfigError, build, deep_merge, parse_overrides, read_yaml, to_dict
 from learner.registry import get_algo
 
@@ -52,6 +53,22 @@ class ReplayConfig:
 
 
 @dataclass(frozen=True)
+class CyclingConfig:
+    """EM-CAC's semi-online cycling buffer (seed 5.3.4: the last 32 episodes, 4 new per
+    training step). Each episode is sampled at most capacity / run.num_envs times.
+
+    Attributes:
+        capacity: episodes held; every policy-gradient step trains on all of them.
+    """
+
+    capacity: int = 32
+
+    def validate(self) -> None:
+        if self.capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {self.capacity}")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """The training loop.
 
@@ -90,6 +107,7 @@ class TrainConfig:
     env: EnvConfig
     exploration: ExplorationConfig
     replay: ReplayConfig
+    cycling: CyclingConfig
     run: RunConfig
 
     def to_yaml_dict(self) -> dict[str, Any]:
@@ -99,6 +117,7 @@ class TrainConfig:
             "env": to_dict(self.env),
             "exploration": to_dict(self.exploration),
             "replay": to_dict(self.replay),
+            "cycling": to_dict(self.cycling),
             "run": to_dict(self.run),
         }
 
@@ -107,6 +126,7 @@ SECTIONS = {
     "env": EnvConfig,
     "exploration": ExplorationConfig,
     "replay": ReplayConfig,
+    "cycling": CyclingConfig,
     "run": RunConfig,
 }
 
@@ -153,3 +173,53 @@ def load_train_config(
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
     return TrainConfig(algo_name=algo, algo=algo_cfg, **built)
+
+
+@dataclass(frozen=True)
+class DataPlan:
+    """Which buffer tables a run needs and what one learner step consumes from them.
+
+    Attributes:
+        tables: the tables to create (in process or in the buffer service).
+        table: the table of the main batch; batch_size its size.
+        extra_table: a second batch's table (E-CAC's off-policy critic pass), or None.
+        extra_batch_size: that batch's size.
+    """
+
+    tables: tuple[TableConfig, ...]
+    table: str
+    batch_size: int
+    extra_table: str | None = None
+    extra_batch_size: int = 0
+
+
+def data_plan(cfg: TrainConfig) -> DataPlan:
+    """Tables and batches for `cfg`'s algorithm family.
+
+    value family: uniform `replay` (replay.capacity), batches of replay.batch_size.
+    policy gradient, on-policy (cac, mcac, coma): `cycling` holding exactly the newest
+        run.num_envs episodes, each used once.
+    policy gradient, extended (ecac, emcac): `cycling` of cycling.capacity episodes, each
+        used capacity / num_envs times, plus a `replay` batch for the extra critic pass.
+    """
+    spec = get_algo(cfg.algo_name)
+    n_new = cfg.run.num_envs
+    replay = TableConfig(
+        name="replay",
+        kind="replay",
+        capacity=cfg.replay.capacity,
+        rate_limiter=RateLimiterConfig(min_size_to_sample=cfg.replay.batch_size),
+    )
+    if spec.family == "value":
+        return DataPlan((replay,), "replay", cfg.replay.batch_size)
+    capacity = cfg.cycling.capacity if spec.extended else n_new
+    cycling = TableConfig(
+        name="cycling",
+        kind="cycling",
+        capacity=capacity,
+        max_times_sampled=max(1, capacity // n_new),
+        rate_limiter=RateLimiterConfig(min_size_to_sample=capacity),
+    )
+    if not spec.extended:
+        return DataPlan((cycling,), "cycling", capacity)
+    return DataPlan((cycling, replay), "cycling", capacity, "replay", cfg.replay.batch_size)

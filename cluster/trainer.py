@@ -23,9 +23,9 @@ import yaml
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
-from cluster.run_config import TrainConfig
+from buffer_service.local import LocalBuffer
+from cluster.run_config import TrainConfig, data_plan
 from learner.registry import Learner, get_algo
-from learner.replay import EpisodeReplay
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +106,9 @@ class LocalTrainer:
         self.learner: Learner = self.spec.build(cfg.algo, schema, n_ensemble, run.device)
         self.worker = self._worker(self.venv, run.seed)
         self.test_worker = self._worker(self.test_venv, run.seed + 1)
-        self.replays = [
-            EpisodeReplay(cfg.replay.capacity, np.random.default_rng(run.seed * 1000 + k))
-            for k in range(n_ensemble)
+        self.plan = data_plan(cfg)
+        self.buffers = [
+            LocalBuffer(self.plan.tables, seed=run.seed * 1000 + k) for k in range(n_ensemble)
         ]
         self.t_env = 0
         self.episodes = 0
@@ -134,20 +134,19 @@ class LocalTrainer:
         self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False
     ) -> None:
         """Train until t_env >= t_max, evaluating every test_interval env steps."""
-        run, bs = self.cfg.run, self.cfg.replay.batch_size
+        run = self.cfg.run
         bar = Progress(run.t_max) if progress else None
         while self.t_env < run.t_max:
             self.worker.follow(self.learner.updates)
             result = self.worker.run_round(t_env=self.t_env)
             per = run.num_envs
-            for j, ep in enumerate(result.episodes):
-                self.replays[j // per].add(ep)
+            for k, buf in enumerate(self.buffers):
+                buf.insert(result.episodes[k * per : (k + 1) * per])
             self.t_env += result.env_steps // self.E
             self.episodes += per
-            if all(r.can_sample(bs) for r in self.replays):
-                batches = [r.sample(bs) for r in self.replays]
-                batch = batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
-                self.last_metrics = self.learner.step(batch)
+            batch, extra = self._sample()
+            if batch is not None:
+                self.last_metrics = self.learner.step(batch, extra)
             if self.t_env - self.last_test_t >= run.test_interval:
                 records = self.evaluate()
                 self.last_test_t = self.t_env
@@ -167,6 +166,26 @@ class LocalTrainer:
                 self.last_save_t = self.t_env
         if bar:
             bar.close()
+
+    def _sample(self) -> tuple[EpisodeBatch | None, EpisodeBatch | None]:
+        """The next learner batch (and extra batch) of every member, or (None, None)."""
+        plan = self.plan
+        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
+            return None, None
+        if plan.extra_table and not all(
+            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
+        ):
+            return None, None
+        batch = self._stack([b.sample(plan.table, plan.batch_size) for b in self.buffers])
+        extra = None
+        if plan.extra_table:
+            extra = self._stack(
+                [b.sample(plan.extra_table, plan.extra_batch_size) for b in self.buffers]
+            )
+        return batch, extra
+
+    def _stack(self, batches: list[EpisodeBatch]) -> EpisodeBatch:
+        return batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
 
     def evaluate(self) -> list[EvalRecord]:
         """Greedy episodes for every member; one record per member."""
@@ -194,7 +213,7 @@ class LocalTrainer:
     def save(self, path: Path) -> None:
         """Write learner (networks, targets, optimisers, counters), loop counters and RNG states
         to `path` atomically: a crash mid-write leaves the previous checkpoint intact. The
-        replay contents are not saved; a resumed run refills its replay."""
+        buffer contents are not saved; a resumed run refills its buffer."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
@@ -209,7 +228,7 @@ class LocalTrainer:
             "torch_rng": torch.get_rng_state(),
             "worker_rng": self.worker.gen.get_state(),
             "test_worker_rng": self.test_worker.gen.get_state(),
-            "replay_rng": [r.rng.bit_generator.state for r in self.replays],
+            "buffer_rng": [b.rng_state() for b in self.buffers],
             "episode_seq": self.worker.episode_seq,
         }
         torch.save(state, tmp / "trainer.pt")
@@ -233,8 +252,8 @@ class LocalTrainer:
         torch.set_rng_state(state["torch_rng"])
         self.worker.gen.set_state(state["worker_rng"])
         self.test_worker.gen.set_state(state["test_worker_rng"])
-        for r, s in zip(self.replays, state["replay_rng"], strict=True):
-            r.rng.bit_generator.state = s
+        for buf, rng in zip(self.buffers, state["buffer_rng"], strict=True):
+            buf.set_rng_state(rng)
         self.worker.episode_seq = state["episode_seq"]
 
 

@@ -140,8 +140,8 @@ class RDNLearner:
             values.append(v.masked_fill(~allowed, -1e10))
         return torch.stack(values, -1).max(-1).values
 
-    def step(self, batch: EpisodeBatch) -> dict[str, float]:
-        """One RDN update (critic, then agents); returns scalar metrics."""
+    def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
+        """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
         tb = TensorBatch.from_episodes(batch, self.device)
         e, b, t, n = tb.shape
         hist = obs_history(tb.obs, self.cfg.obs_window)  # [E, B, T+1, N, W*O]

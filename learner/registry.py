@@ -23,6 +23,7 @@ class Learner(Protocol):
         learner = ALGOS[name].build(cfg, schema, n_ensemble, "cpu")
         for batch in batches:
             metrics = learner.step(batch)       # dict of scalar losses and diagnostics
+            # (extended policy-gradient learners also take `extra`, an off-policy batch)
         actors.set_weights(learner.get_weights())
         torch.save(learner.state_dict(), path)  # networks, targets, optimisers, counters
     """
@@ -31,7 +32,7 @@ class Learner(Protocol):
     updates: int  # also the version of the weights get_weights() returns
     agent: AgentNet  # the acting network; in one process actors may act with it directly
 
-    def step(self, batch: EpisodeBatch) -> dict[str, float]: ...
+    def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]: ...
     def get_weights(self) -> VersionedWeights: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
@@ -46,12 +47,16 @@ class AlgoSpec:
         config_cls: its frozen config dataclass (the `algo:` section of a run config).
         build: `(config, schema, n_ensemble, device) -> Learner`.
         description: one line for help texts.
+        family: "value" or "pg"; decides the buffer tables (cluster.run_config.data_plan).
+        extended: for "pg", whether the learner also takes an off-policy replay batch.
     """
 
     name: str
     config_cls: type
     build: Callable[[Any, EpisodeSchema, int, str], Learner]
     description: str
+    family: str = "value"  # "value" (replay, ε-greedy) or "pg" (cycling buffer, sampling)
+    extended: bool = False  # pg only: semi-online cycling buffer + off-policy critic pass
 
 
 def _value(mixing: str) -> Callable[[Any, EpisodeSchema, int, str], Learner]:

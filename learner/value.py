@@ -116,8 +116,8 @@ class ValueLearner:
         assert mixer is not None
         return mixer(qs.reshape(e, b * t, n), cond.reshape(e, b * t, -1)).view(e, b, t)
 
-    def step(self, batch: EpisodeBatch) -> dict[str, float]:
-        """One Q-learning update on a batch of episodes; returns scalar metrics."""
+    def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
+        """One Q-learning update on a batch of episodes (`extra` is unused); returns metrics."""
         tb = TensorBatch.from_episodes(batch, self.device)
         inputs = agent_inputs(tb.obs, tb.actions, self.info.n_actions)
         qs = unroll(self.agent, inputs)  # [E, B, T+1, N, A]
