@@ -5,6 +5,8 @@ Actors only act and record; returns, targets and advantages are the learner's bu
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +17,13 @@ from actors.envs.base import VecEnv
 from actors.policy import ExplorationConfig, select_actions
 from buffer_service.episode import Episode
 from learner.networks import AgentNet, VersionedWeights
+
+
+def clock_seq(last: int) -> int:
+    """Episode numbers from the wall clock in microseconds, strictly increasing: a restarted
+    actor never reuses a number its previous life inserted (inserts are idempotent on
+    (actor_id, episode_seq), so a reused number would be dropped as a duplicate)."""
+    return max(last + 1, time.time_ns() // 1000)
 
 
 @dataclass(frozen=True)
@@ -40,6 +49,8 @@ class RolloutWorker:
     Calling loop::
 
         worker = RolloutWorker(venv, agent_net, "q", ExplorationConfig(), actor_id=3)
+        # episode_seq: next_seq(last) numbers the episodes (default last + 1); a worker that
+        # may restart uses a source that never repeats, e.g. `clock_seq`.
         worker.set_weights(learner.get_weights())      # adopted only if newer
         episodes = worker.collect(8, t_env=t)          # list[Episode]
     """
@@ -53,6 +64,7 @@ class RolloutWorker:
         n_ensemble: int = 1,
         actor_id: int = 0,
         seed: int = 0,
+        next_seq: Callable[[int], int] | None = None,
     ):
         if venv.num_envs % n_ensemble:
             raise ValueError(
@@ -64,6 +76,7 @@ class RolloutWorker:
         self.gen = torch.Generator().manual_seed(seed)
         self.version = -1
         self.episode_seq = 0
+        self.next_seq = next_seq or (lambda last: last + 1)
         self.t_env = 0
 
     def follow(self, version: int) -> None:
@@ -146,9 +159,9 @@ class RolloutWorker:
         return RoundResult(episodes, reward.sum(1), won, steps)
 
     def _episode(self, j, t, obs, state, avail, actions, reward, terminated) -> Episode:
-        # The last observation of an env that ended before the round's final step was
-        # recorded when it ended (index t), since later rows are only read for active envs.
-        self.episode_seq += 1
+        # Row t (the observation after an env's last step) was written at the start of the
+        # next loop iteration or after the loop; rows past it are never read.
+        self.episode_seq = self.next_seq(self.episode_seq)
         return Episode(
             obs=obs[j, : t + 1].copy(),
             state=state[j, : t + 1].copy(),

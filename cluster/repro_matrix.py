@@ -54,13 +54,13 @@ def run_pair(algo: str, game: str, seeds: int, overrides: list[str], threads: in
 
     started = time.monotonic()
     trainer.train(on_eval=on_eval)
-    if not t_env or t_env[-1] != trainer.t_env:
-        on_eval(trainer.evaluate())
+    if not t_env or t_env[-1] != trainer.core.t_env:
+        on_eval(trainer.core.evaluate())
     diagnostics = None
     if algo == "rdn":
         from cluster.rdn_diagnostics import diagnose
 
-        diagnostics = diagnose(trainer.learner, game, cfg.env.args)
+        diagnostics = diagnose(trainer.core.learner, game, cfg.env.args)
     return Curve(algo, game, t_env, returns, time.monotonic() - started, diagnostics)
 
 

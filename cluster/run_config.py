@@ -80,6 +80,8 @@ class RunConfig:
         test_episodes: greedy episodes per evaluation.
         save_interval: env steps between checkpoints (0: only at the end).
         device: torch device of the learner.
+        torch_threads: intra-op threads of the learner's torch (the agent and critic nets
+            are small; more threads mostly spin against the actors for the same cores).
     """
 
     t_max: int = 2_000_000
@@ -89,13 +91,56 @@ class RunConfig:
     test_episodes: int = 20
     save_interval: int = 0
     device: str = "cpu"
+    torch_threads: int = 1
 
     def validate(self) -> None:
         for name in ("t_max", "num_envs", "test_interval", "test_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.torch_threads < 1:
+            raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.save_interval < 0:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    """The distributed runtime (`credit train --mode cluster`).
+
+    Attributes:
+        actors: rollout actors (Ray actors), each stepping run.num_envs envs.
+        actor_cpus: CPUs Ray reserves per actor.
+        publish_interval: learner updates between weight publications (one ray.put each).
+        max_policy_lag: drop sampled episodes more than this many versions behind the
+            learner (0 = keep all; off-policy learners replay old episodes by design).
+        rate_slack: how many rounds of every actor may be in flight before inserts wait for
+            the learner (the sample-to-insert limiter's error buffer, in rounds).
+        fsync: the buffer service fsyncs its log before acknowledging an insert.
+        sample_timeout_s: longest the learner waits for a batch before checking on actors.
+        metrics: run Prometheus exporters (actors, learner, buffer) and write the file-SD file.
+    """
+
+    actors: int = 2
+    actor_cpus: float = 1.0
+    publish_interval: int = 1
+    max_policy_lag: int = 0
+    rate_slack: int = 2
+    fsync: bool = True
+    sample_timeout_s: float = 30.0
+    metrics: bool = True
+
+    def validate(self) -> None:
+        if self.actors < 1:
+            raise ValueError(f"actors must be >= 1, got {self.actors}")
+        if self.actor_cpus < 0:
+            raise ValueError(f"actor_cpus must be >= 0, got {self.actor_cpus}")
+        for name in ("publish_interval", "rate_slack"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_policy_lag < 0:
+            raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
+        if self.sample_timeout_s <= 0:
+            raise ValueError(f"sample_timeout_s must be > 0, got {self.sample_timeout_s}")
 
 
 @dataclass(frozen=True)
@@ -109,6 +154,7 @@ class TrainConfig:
     replay: ReplayConfig
     cycling: CyclingConfig
     run: RunConfig
+    cluster: ClusterConfig
 
     def to_yaml_dict(self) -> dict[str, Any]:
         return {
@@ -119,6 +165,7 @@ class TrainConfig:
             "replay": to_dict(self.replay),
             "cycling": to_dict(self.cycling),
             "run": to_dict(self.run),
+            "cluster": to_dict(self.cluster),
         }
 
 
@@ -128,6 +175,7 @@ SECTIONS = {
     "replay": ReplayConfig,
     "cycling": CyclingConfig,
     "run": RunConfig,
+    "cluster": ClusterConfig,
 }
 
 
@@ -154,7 +202,7 @@ def load_train_config(
     algo = algo or user.get("algo_name") or "rdn"
     env_id = env_id or user.get("env", {}).get("id") or EnvConfig.id
     try:
-        spec = get_algo(algo)
+        get_algo(algo)  # fail before looking for its YAML
     except ValueError as e:
         raise ConfigError(str(e)) from None
     data: dict[str, Any] = {}
@@ -163,16 +211,24 @@ def load_train_config(
     data = deep_merge(data, user)
     data["algo_name"] = algo
     data.setdefault("env", {})["id"] = env_id
+    return build_train_config(data)
+
+
+def build_train_config(data: dict[str, Any]) -> TrainConfig:
+    """A TrainConfig from complete data (`TrainConfig.to_yaml_dict()` form), validated."""
+    try:
+        spec = get_algo(data.get("algo_name", ""))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     unknown = [k for k in data if k not in (*SECTIONS, "algo", "algo_name")]
     if unknown:
-        raise ConfigError(
-            f"unknown config section {unknown[0]!r}; valid sections: algo, {', '.join(SECTIONS)}"
-        )
+        valid = ", ".join(SECTIONS)
+        raise ConfigError(f"unknown config section {unknown[0]!r}; valid sections: algo, {valid}")
     built = {
         name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
-    return TrainConfig(algo_name=algo, algo=algo_cfg, **built)
+    return TrainConfig(algo_name=spec.name, algo=algo_cfg, **built)
 
 
 @dataclass(frozen=True)
@@ -193,7 +249,7 @@ class DataPlan:
     extra_batch_size: int = 0
 
 
-def data_plan(cfg: TrainConfig) -> DataPlan:
+def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
     """Tables and batches for `cfg`'s algorithm family.
 
     value family: uniform `replay` (replay.capacity), batches of replay.batch_size.
@@ -201,25 +257,36 @@ def data_plan(cfg: TrainConfig) -> DataPlan:
         run.num_envs episodes, each used once.
     policy gradient, extended (ecac, emcac): `cycling` of cycling.capacity episodes, each
         used capacity / num_envs times, plus a `replay` batch for the extra critic pass.
+    Every table gets a sample-to-insert limiter at the ratio a one-process run has (one
+    learner step per round of run.num_envs episodes), so `--mode cluster` keeps the same
+    update-to-data ratio; `actors` x cluster.rate_slack rounds may be in flight.
     """
     spec = get_algo(cfg.algo_name)
     n_new = cfg.run.num_envs
+    slack = actors * cfg.cluster.rate_slack * n_new
+
+    def limiter(batch: int, min_size: int) -> RateLimiterConfig:
+        spi = batch / n_new
+        return RateLimiterConfig(
+            min_size_to_sample=min_size,
+            samples_per_insert=spi,
+            error_buffer=max(batch, spi * slack),
+        )
+
+    bs = cfg.replay.batch_size
     replay = TableConfig(
-        name="replay",
-        kind="replay",
-        capacity=cfg.replay.capacity,
-        rate_limiter=RateLimiterConfig(min_size_to_sample=cfg.replay.batch_size),
+        name="replay", kind="replay", capacity=cfg.replay.capacity, rate_limiter=limiter(bs, bs)
     )
     if spec.family == "value":
-        return DataPlan((replay,), "replay", cfg.replay.batch_size)
+        return DataPlan((replay,), "replay", bs)
     capacity = cfg.cycling.capacity if spec.extended else n_new
     cycling = TableConfig(
         name="cycling",
         kind="cycling",
         capacity=capacity,
         max_times_sampled=max(1, capacity // n_new),
-        rate_limiter=RateLimiterConfig(min_size_to_sample=capacity),
+        rate_limiter=limiter(capacity, capacity),
     )
     if not spec.extended:
         return DataPlan((cycling,), "cycling", capacity)
-    return DataPlan((cycling, replay), "cycling", capacity, "replay", cfg.replay.batch_size)
+    return DataPlan((cycling, replay), "cycling", capacity, "replay", bs)

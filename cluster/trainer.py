@@ -79,37 +79,35 @@ class Progress:
             sys.stderr.write("\n")
 
 
-class LocalTrainer:
-    """Rollouts, replay and updates in one process for E seed-batched members.
+class TrainerCore:
+    """What every training loop shares: the learner, greedy evaluation, counters, checkpoints.
 
-    Calling loop::
-
-        trainer = LocalTrainer(cfg, n_ensemble=1)
-        trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
-        trainer.save(path)
+    Loops (`LocalTrainer` here, `cluster.cluster_trainer.ClusterTrainer`) own how episodes are
+    produced and batches reach `learner.step`; they report progress through `count`.
     """
 
-    def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        n_ensemble: int = 1,
+        checkpoint_dir: Path | None = None,
+        actors: int = 1,
+    ):
         self.cfg, self.E = cfg, n_ensemble
         self.checkpoint_dir = checkpoint_dir
         run = cfg.run
+        torch.set_num_threads(run.torch_threads)
         torch.manual_seed(run.seed)
         self.spec = get_algo(cfg.algo_name)
-        self.venv = make_vec_env(
-            cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args
-        )
+        self.plan = data_plan(cfg, actors)
         self.test_venv = make_vec_env(
             cfg.env.id, n_ensemble * run.test_episodes, seed=run.seed + 10_000, **cfg.env.args
         )
-        self.info = self.venv.info
-        schema = self.info.schema()
-        self.learner: Learner = self.spec.build(cfg.algo, schema, n_ensemble, run.device)
-        self.worker = self._worker(self.venv, run.seed)
-        self.test_worker = self._worker(self.test_venv, run.seed + 1)
-        self.plan = data_plan(cfg)
-        self.buffers = [
-            LocalBuffer(self.plan.tables, seed=run.seed * 1000 + k) for k in range(n_ensemble)
-        ]
+        self.info = self.test_venv.info
+        self.learner: Learner = self.spec.build(
+            cfg.algo, self.info.schema(), n_ensemble, run.device
+        )
+        self.test_worker = self.local_worker(self.test_venv, run.seed + 1)
         self.t_env = 0
         self.episodes = 0
         self.last_test_t = -run.test_interval
@@ -118,74 +116,22 @@ class LocalTrainer:
         self.wall_offset = 0.0
         self.last_metrics: dict[str, float] = {}
 
-    def _worker(self, venv, seed: int) -> RolloutWorker:
-        # In one process the workers act with the learner's own agent module (no weight copy);
-        # `follow` keeps their policy_version tags right.
-        agent = self.learner.agent
+    def local_worker(self, venv, seed: int, actor_id: int = 0) -> RolloutWorker:
+        """A worker acting with the learner's own agent module (no weight copy; `follow` keeps
+        its policy_version tags right)."""
         return RolloutWorker(
-            venv, agent, self.learner.policy_kind, self.cfg.exploration, self.E, 0, seed
+            venv,
+            self.learner.agent,
+            self.learner.policy_kind,
+            self.cfg.exploration,
+            self.E,
+            actor_id,
+            seed,
         )
 
     @property
     def wall_s(self) -> float:
         return self.wall_offset + time.monotonic() - self.started
-
-    def train(
-        self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False
-    ) -> None:
-        """Train until t_env >= t_max, evaluating every test_interval env steps."""
-        run = self.cfg.run
-        bar = Progress(run.t_max) if progress else None
-        while self.t_env < run.t_max:
-            self.worker.follow(self.learner.updates)
-            result = self.worker.run_round(t_env=self.t_env)
-            per = run.num_envs
-            for k, buf in enumerate(self.buffers):
-                buf.insert(result.episodes[k * per : (k + 1) * per])
-            self.t_env += result.env_steps // self.E
-            self.episodes += per
-            batch, extra = self._sample()
-            if batch is not None:
-                self.last_metrics = self.learner.step(batch, extra)
-            if self.t_env - self.last_test_t >= run.test_interval:
-                records = self.evaluate()
-                self.last_test_t = self.t_env
-                if on_eval:
-                    on_eval(records)
-                if bar:
-                    bar.update(
-                        self.t_env,
-                        f"test_return {np.mean([r.test_return_mean for r in records]):.3f}",
-                    )
-            if (
-                run.save_interval
-                and self.t_env - self.last_save_t >= run.save_interval
-                and self.checkpoint_dir
-            ):
-                self.save(self.checkpoint_dir)
-                self.last_save_t = self.t_env
-        if bar:
-            bar.close()
-
-    def _sample(self) -> tuple[EpisodeBatch | None, EpisodeBatch | None]:
-        """The next learner batch (and extra batch) of every member, or (None, None)."""
-        plan = self.plan
-        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
-            return None, None
-        if plan.extra_table and not all(
-            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
-        ):
-            return None, None
-        batch = self._stack([b.sample(plan.table, plan.batch_size) for b in self.buffers])
-        extra = None
-        if plan.extra_table:
-            extra = self._stack(
-                [b.sample(plan.extra_table, plan.extra_batch_size) for b in self.buffers]
-            )
-        return batch, extra
-
-    def _stack(self, batches: list[EpisodeBatch]) -> EpisodeBatch:
-        return batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
 
     def evaluate(self) -> list[EvalRecord]:
         """Greedy episodes for every member; one record per member."""
@@ -209,11 +155,35 @@ class LocalTrainer:
             )
         return records
 
+    def periodic(
+        self,
+        on_eval: Callable[[list[EvalRecord]], None] | None,
+        bar: Progress | None,
+        extra_state: Callable[[], dict] | None = None,
+    ) -> None:
+        """Evaluate and checkpoint when their intervals have passed."""
+        run = self.cfg.run
+        if self.t_env - self.last_test_t >= run.test_interval:
+            records = self.evaluate()
+            self.last_test_t = self.t_env
+            if on_eval:
+                on_eval(records)
+            if bar:
+                mean = np.mean([r.test_return_mean for r in records])
+                bar.update(self.t_env, f"test_return {mean:.3f} updates {self.learner.updates}")
+        if (
+            run.save_interval
+            and self.checkpoint_dir
+            and self.t_env - self.last_save_t >= run.save_interval
+        ):
+            self.last_save_t = self.t_env
+            self.save(self.checkpoint_dir, extra_state() if extra_state else {})
+
     # -- checkpoints -------------------------------------------------------------------------
-    def save(self, path: Path) -> None:
-        """Write learner (networks, targets, optimisers, counters), loop counters and RNG states
-        to `path` atomically: a crash mid-write leaves the previous checkpoint intact. The
-        buffer contents are not saved; a resumed run refills its buffer."""
+    def save(self, path: Path, extra: dict | None = None) -> None:
+        """Write the learner (networks, targets, optimisers, counters), loop counters, RNG
+        states and the loop's `extra` state to `path` atomically: a crash mid-write leaves the
+        previous checkpoint (or its `.old` copy) intact."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
@@ -226,10 +196,8 @@ class LocalTrainer:
             "last_save_t": self.last_save_t,
             "wall_s": self.wall_s,
             "torch_rng": torch.get_rng_state(),
-            "worker_rng": self.worker.gen.get_state(),
             "test_worker_rng": self.test_worker.gen.get_state(),
-            "buffer_rng": [b.rng_state() for b in self.buffers],
-            "episode_seq": self.worker.episode_seq,
+            "loop": extra or {},
         }
         torch.save(state, tmp / "trainer.pt")
         (tmp / "config.yaml").write_text(yaml.safe_dump(self.cfg.to_yaml_dict(), sort_keys=False))
@@ -240,9 +208,14 @@ class LocalTrainer:
         os.replace(tmp, path)
         shutil.rmtree(old, ignore_errors=True)
 
-    def restore(self, path: Path) -> None:
-        """Load a checkpoint written by `save` (same config)."""
+    def restore(self, path: Path) -> dict:
+        """Load a checkpoint written by `save` (same config); returns the loop's extra state."""
         path = Path(path)
+        if (
+            not (path / "trainer.pt").exists()
+            and (path.with_name(path.name + ".old") / "trainer.pt").exists()
+        ):
+            path = path.with_name(path.name + ".old")  # a crash between the two renames of save()
         self.learner.load_state_dict(torch.load(path / "learner.pt", weights_only=False))
         state = torch.load(path / "trainer.pt", weights_only=False)
         self.t_env, self.episodes = state["t_env"], state["episodes"]
@@ -250,8 +223,86 @@ class LocalTrainer:
         self.wall_offset = state["wall_s"]
         self.started = time.monotonic()
         torch.set_rng_state(state["torch_rng"])
-        self.worker.gen.set_state(state["worker_rng"])
         self.test_worker.gen.set_state(state["test_worker_rng"])
+        return state["loop"]
+
+
+class LocalTrainer:
+    """Rollouts, buffer tables and updates in one process for E seed-batched members.
+
+    Calling loop::
+
+        trainer = LocalTrainer(cfg, n_ensemble=1)
+        trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
+        trainer.save(path)
+    """
+
+    def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
+        self.core = core = TrainerCore(cfg, n_ensemble, checkpoint_dir)
+        run = cfg.run
+        self.E = n_ensemble
+        venv = make_vec_env(cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args)
+        self.worker = core.local_worker(venv, run.seed)
+        self.buffers = [
+            LocalBuffer(core.plan.tables, seed=run.seed * 1000 + k) for k in range(n_ensemble)
+        ]
+
+    def train(
+        self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False
+    ) -> None:
+        """Train until t_env >= t_max, evaluating every test_interval env steps."""
+        core, run = self.core, self.core.cfg.run
+        bar = Progress(run.t_max) if progress else None
+        while core.t_env < run.t_max:
+            self.worker.follow(core.learner.updates)
+            result = self.worker.run_round(t_env=core.t_env)
+            per = run.num_envs
+            for k, buf in enumerate(self.buffers):
+                buf.insert(result.episodes[k * per : (k + 1) * per])
+            core.t_env += result.env_steps // self.E
+            core.episodes += per
+            batch, extra = self._sample()
+            if batch is not None:
+                core.last_metrics = core.learner.step(batch, extra)
+            core.periodic(on_eval, bar, self.loop_state)
+        if bar:
+            bar.close()
+
+    def _sample(self) -> tuple[EpisodeBatch | None, EpisodeBatch | None]:
+        """The next learner batch (and extra batch) of every member, or (None, None)."""
+        plan = self.core.plan
+        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
+            return None, None
+        if plan.extra_table and not all(
+            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
+        ):
+            return None, None
+        batch = self._stack([b.sample(plan.table, plan.batch_size) for b in self.buffers])
+        extra = None
+        if plan.extra_table:
+            extra = self._stack(
+                [b.sample(plan.extra_table, plan.extra_batch_size) for b in self.buffers]
+            )
+        return batch, extra
+
+    def _stack(self, batches: list[EpisodeBatch]) -> EpisodeBatch:
+        return batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
+
+    def loop_state(self) -> dict:
+        """RNG states and counters of this loop, for checkpoints. The buffer contents are not
+        saved; a resumed local run refills its buffer."""
+        return {
+            "worker_rng": self.worker.gen.get_state(),
+            "buffer_rng": [b.rng_state() for b in self.buffers],
+            "episode_seq": self.worker.episode_seq,
+        }
+
+    def save(self, path: Path) -> None:
+        self.core.save(path, self.loop_state())
+
+    def restore(self, path: Path) -> None:
+        state = self.core.restore(path)
+        self.worker.gen.set_state(state["worker_rng"])
         for buf, rng in zip(self.buffers, state["buffer_rng"], strict=True):
             buf.set_rng_state(rng)
         self.worker.episode_seq = state["episode_seq"]

@@ -191,4 +191,4 @@ class VersionedWeights:
         )
 
     def load_into(self, module: nn.Module) -> None:
-        module.load_state_dict({k: torch.as_tensor(v) for k, v in self.arrays.items()})
+        module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in self.arrays.items()})

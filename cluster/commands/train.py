@@ -13,6 +13,7 @@ from pathlib import Path
 
 import yaml
 
+from cluster.cli_errors import UsageError
 from cluster.config import ConfigError
 from cluster.run_config import load_train_config
 from cluster.trainer import EvalRecord, LocalTrainer, write_json
@@ -49,7 +50,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--t-max", type=int, help="env steps to train (run.t_max)")
     p.add_argument("--out", default=None, help="output folder (default runs/<algo>_<env>_s<seed>)")
     p.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its checkpoint")
-    p.add_argument("--mode", choices=["local"], default="local", help="local: one process")
+    p.add_argument(
+        "--mode",
+        choices=["local", "cluster"],
+        default="local",
+        help="local: one process; cluster: Ray rollout actors + the buffer service",
+    )
+    p.add_argument("--actors", type=int, help="cluster mode: rollout actors (cluster.actors)")
+    p.add_argument(
+        "--address",
+        help="cluster mode: Ray address to join ('auto' = the one `credit cluster up` started); "
+        "default: start a private local Ray instance on 127.0.0.1",
+    )
     p.set_defaults(func=cmd_train)
 
 
@@ -59,6 +71,8 @@ def _overrides(args: argparse.Namespace) -> list[str]:
         sets.append(f"run.seed={args.seed}")
     if args.t_max is not None:
         sets.append(f"run.t_max={args.t_max}")
+    if getattr(args, "actors", None) is not None:
+        sets.append(f"cluster.actors={args.actors}")
     return sets
 
 
@@ -76,12 +90,45 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.out or Path("runs") / name)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False))
-    trainer = LocalTrainer(cfg, checkpoint_dir=out / "checkpoint")
-    if args.resume:
-        trainer.restore(out / "checkpoint")
-        log.info("resumed %s at t_env=%d", out, trainer.t_env)
+    if args.mode == "cluster":
+        trainer, records = _train_cluster(cfg, out, args)
+    else:
+        trainer = LocalTrainer(cfg, checkpoint_dir=out / "checkpoint")
+        if args.resume:
+            trainer.restore(out / "checkpoint")
+            log.info("resumed %s at t_env=%d", out, trainer.core.t_env)
+        records = _run(trainer, out, bool(args.resume))
+        trainer.save(out / "checkpoint")
+    last = records[-1]
+    core = trainer.core
+    summary = {
+        "algo": cfg.algo_name,
+        "env": cfg.env.id,
+        "seed": cfg.run.seed,
+        "mode": args.mode,
+        "t_env": core.t_env,
+        "episodes": core.episodes,
+        "updates": core.learner.updates,
+        "wall_s": round(core.wall_s, 3),
+        "final_test_return_mean": last.test_return_mean,
+        "final_test_won_mean": last.test_won_mean,
+    }
+    if args.mode == "cluster":
+        summary["actors"] = cfg.cluster.actors
+        summary["actor_restarts"] = trainer.restarts
+        summary["buffer_restarts"] = trainer.buffer.restarts
+        summary["dropped_stale_episodes"] = trainer.dropped_stale
+    write_json(out / "summary.json", summary)
+    print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
+    return 0
+
+
+def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:
+    """Train with `trainer` (local or cluster), appending evaluations to metrics.jsonl; a
+    final evaluation at the last t_env if the schedule did not end on one."""
+    core = trainer.core
     records: list[EvalRecord] = []
-    with open(out / "metrics.jsonl", "a" if args.resume else "w") as metrics_file:
+    with open(out / "metrics.jsonl", "a" if append else "w") as metrics_file:
 
         def on_eval(recs: list[EvalRecord]) -> None:
             records.extend(recs)
@@ -89,6 +136,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                 metrics_file.write(json.dumps(r.as_json()) + "\n")
             metrics_file.flush()
 
+        cfg = core.cfg
         log.info(
             "training %s on %s for %d env steps -> %s",
             cfg.algo_name,
@@ -106,25 +154,30 @@ def cmd_train(args: argparse.Namespace) -> int:
                 else "no checkpoint was written yet"
             )
             raise NonFiniteLossError(f"training stopped: {e}; {kept}") from None
-    if not records or records[-1].t_env != trainer.t_env:
-        on_final = trainer.evaluate()
-        records.extend(on_final)
-        with open(out / "metrics.jsonl", "a") as f:
-            for r in on_final:
-                f.write(json.dumps(r.as_json()) + "\n")
-    trainer.save(out / "checkpoint")
-    last = records[-1]
-    summary = {
-        "algo": cfg.algo_name,
-        "env": cfg.env.id,
-        "seed": cfg.run.seed,
-        "t_env": trainer.t_env,
-        "episodes": trainer.episodes,
-        "updates": trainer.learner.updates,
-        "wall_s": round(trainer.wall_s, 3),
-        "final_test_return_mean": last.test_return_mean,
-        "final_test_won_mean": last.test_won_mean,
-    }
-    write_json(out / "summary.json", summary)
-    print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
-    return 0
+        if not records or records[-1].t_env != core.t_env:
+            on_eval(core.evaluate())
+    return records
+
+
+def _train_cluster(cfg, out: Path, args: argparse.Namespace):
+    from cluster import ray_cluster
+
+    ray_cluster.apply_ray_environment()  # before anything imports ray: it reads them at import
+    from cluster.cluster_trainer import ClusterTrainer
+
+    try:
+        where = ray_cluster.connect(args.address, num_cpus=max(2, cfg.cluster.actors + 1))
+    except ray_cluster.ClusterError as e:
+        raise UsageError(str(e)) from None
+    log.info("%s", where)
+    trainer = ClusterTrainer(cfg, out)
+    if args.resume:
+        trainer.restore(out / "checkpoint")
+        log.info("resumed %s at t_env=%d", out, trainer.core.t_env)
+    try:
+        trainer.start()
+        records = _run(trainer, out, bool(args.resume))
+        trainer.save(out / "checkpoint")
+    finally:
+        trainer.shutdown()
+    return trainer, records

@@ -1,0 +1,43 @@
+"""`credit cluster up|status|down`: a local multi-process Ray cluster on loopback."""
+
+from __future__ import annotations
+
+import argparse
+
+from cluster import ray_cluster
+from cluster.cli_errors import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("cluster", help="start, inspect or stop a local Ray cluster")
+    csub = p.add_subparsers(dest="cluster_command", required=True, metavar="CLUSTER_COMMAND")
+    up = csub.add_parser("up", help="start a Ray head node (and its worker processes)")
+    up.add_argument("--num-cpus", type=int, default=2, help="CPUs the cluster offers (default 2)")
+    up.add_argument("--port", type=int, default=6379, help="GCS port (default 6379)")
+    up.add_argument("--host", default=ray_cluster.LOOPBACK, help="node address (default 127.0.0.1)")
+    up.set_defaults(func=cmd_up)
+    st = csub.add_parser("status", help="show the cluster's nodes and resources")
+    st.set_defaults(func=cmd_status)
+    dn = csub.add_parser("down", help="stop the cluster")
+    dn.set_defaults(func=cmd_down)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    try:
+        state = ray_cluster.up(args.num_cpus, args.port, args.host)
+    except ray_cluster.ClusterError as e:
+        raise UsageError(str(e)) from None
+    print(f"Ray cluster up at {state.address} ({state.num_cpus} CPUs); train on it with:")
+    print("  credit train --mode cluster --address auto --actors 2 ...")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    print(ray_cluster.status())
+    return 0
+
+
+def cmd_down(args: argparse.Namespace) -> int:
+    ray_cluster.down()
+    print("Ray cluster stopped")
+    return 0

@@ -1,0 +1,201 @@
+"""`credit train --mode cluster` with real processes: a private Ray instance on 127.0.0.1,
+Ray rollout actors, the buffer service over TCP, and kill -9 of each part."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from buffer_service.config import BufferConfig, TableConfig
+from buffer_service.state import BufferState
+from buffer_service.storage import Storage
+
+ray = pytest.importorskip("ray", reason="cluster mode needs ray")
+
+BASE = ["--algo", "vdn", "--env", "matrix/two_step", "--mode", "cluster", "--actors", "2"]
+BIG_REPLAY = ["--set", "replay.capacity=100000"]  # keep every episode for inspection
+
+
+@pytest.fixture
+def env(tmp_path):
+    return {**os.environ, "CREDIT_STATE_DIR": str(tmp_path / "state"), "PYTHONUNBUFFERED": "1"}
+
+
+def _cli(args):
+    return [sys.executable, "-m", "cluster.cli", "train", *args]
+
+
+def _start(args, env, out: Path) -> subprocess.Popen:
+    log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115 - closed with the process
+    return subprocess.Popen(_cli([*args, "--out", str(out)]), env=env, stdout=log, stderr=log)
+
+
+def _wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f"training exited with {proc.returncode} while waiting for {what}")
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def _progress(out: Path) -> int:
+    path = out / "metrics.jsonl"
+    if not path.exists():
+        return 0
+    lines = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    return lines[-1]["t_env"] if lines else 0
+
+
+def _stored_episodes(out: Path):
+    state = BufferState(
+        BufferConfig(tables=(TableConfig(name="replay", kind="replay", capacity=100000),))
+    )
+    Storage(str(out / "buffer" / "data")).restore(state)
+    return state
+
+
+def _assert_whole_and_unique(state):
+    assert state.duplicates == 0
+    for (actor, seq), ep in state.episodes.items():
+        assert ep.key == (actor, seq)
+        assert ep.length == 2 and bool(ep.terminated[-1]) and ep.filled.all()  # whole episodes
+
+
+def test_cluster_outputs_match_local_mode(tmp_path, env):
+    out = tmp_path / "run"
+    done = subprocess.run(
+        _cli([*BASE, "--t-max", "200", "--out", str(out)]),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    local_keys = {
+        "algo",
+        "env",
+        "seed",
+        "t_env",
+        "episodes",
+        "wall_s",
+        "final_test_return_mean",
+        "final_test_won_mean",
+    }
+    assert local_keys <= set(summary)
+    assert summary["mode"] == "cluster" and summary["t_env"] >= 200 and summary["updates"] > 0
+    lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    assert lines and all(
+        {"t_env", "episode", "test_return_mean", "wall_s"} <= set(x) for x in lines
+    )
+    targets = json.loads((out / "targets.json").read_text())
+    assert len(targets[0]["targets"]) == 4  # learner, two actors, buffer service
+    assert all(t.startswith("127.0.0.1:") for t in targets[0]["targets"])
+    state = _stored_episodes(out)
+    assert {actor for actor, _ in state.episodes} == {0, 1}  # both actors contributed
+    _assert_whole_and_unique(state)
+
+
+def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
+    out = tmp_path / "run"
+    proc = _start([*BASE, "--t-max", "1200", *BIG_REPLAY], env, out)
+    try:
+        _wait_for(lambda: _progress(out) >= 100, 240, "training progress", proc)
+        victim = json.loads((out / "cluster.json").read_text())["actors"][0]
+        killed_at_us = time.time_ns() // 1000
+        os.kill(victim["pid"], signal.SIGKILL)
+        assert proc.wait(timeout=300) == 0, (out.parent / "run.log").read_text()[-3000:]
+    finally:
+        proc.kill()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["actor_restarts"] >= 1 and summary["t_env"] >= 1200
+    after = json.loads((out / "cluster.json").read_text())["actors"][0]
+    assert after["pid"] != victim["pid"]
+    state = _stored_episodes(out)
+    _assert_whole_and_unique(state)
+    new_life = [
+        seq for actor, seq in state.episodes if actor == victim["actor_id"] and seq > killed_at_us
+    ]
+    assert new_life, "the restarted actor inserted nothing"
+
+
+def _scrape_inserts(port: int) -> float:
+    from urllib.request import urlopen
+
+    text = urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    for line in text.splitlines():
+        if line.startswith('credit_buffer_inserts_total{table="replay"}'):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, env):
+    out = tmp_path / "run"
+    proc = _start([*BASE, "--t-max", "1200", *BIG_REPLAY], env, out)
+    try:
+        _wait_for(lambda: _progress(out) >= 100, 240, "training progress", proc)
+        service = json.loads((out / "cluster.json").read_text())["buffer"]
+        acked = _scrape_inserts(service["metrics_port"])  # counted when acknowledged
+        os.kill(service["pid"], signal.SIGKILL)
+        assert acked > 0
+        assert proc.wait(timeout=300) == 0, (out.parent / "run.log").read_text()[-3000:]
+    finally:
+        proc.kill()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["buffer_restarts"] >= 1 and summary["t_env"] >= 1200
+    state = _stored_episodes(out)
+    assert len(state.episodes) >= acked
+    _assert_whole_and_unique(state)
+
+
+def _checkpoint(out: Path):
+    path = out / "checkpoint" / "trainer.pt"
+    if not path.exists():
+        return None
+    try:
+        return torch.load(path, weights_only=False)
+    except (EOFError, RuntimeError, OSError):  # mid-rename; try again
+        return None
+
+
+def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
+    out = tmp_path / "run"
+    proc = _start([*BASE, "--t-max", "100000", "--set", "run.save_interval=100"], env, out)
+    try:
+        _wait_for(lambda: (c := _checkpoint(out)) and c["t_env"] >= 300, 240, "a checkpoint", proc)
+        service_pid = json.loads((out / "cluster.json").read_text())["buffer"]["pid"]
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+    # The buffer service dies with its launcher (no orphan left serving).
+    _wait_for(
+        lambda: not Path(f"/proc/{service_pid}").exists(), 30, "the orphaned buffer service to exit"
+    )
+    saved = _checkpoint(out)
+    learner = torch.load(out / "checkpoint" / "learner.pt", weights_only=False)
+    target = saved["t_env"] + 300
+    done = subprocess.run(
+        _cli(["--resume", str(out), "--mode", "cluster", "--t-max", str(target)]),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["t_env"] >= target
+    resumed = torch.load(out / "checkpoint" / "learner.pt", weights_only=False)
+    assert resumed["updates"] > learner["updates"]
+    step = lambda s: float(s["optimiser"]["state"][0]["step"])  # noqa: E731
+    assert step(resumed) == step(learner) + (resumed["updates"] - learner["updates"])
