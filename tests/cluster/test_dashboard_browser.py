@@ -1,16 +1,14 @@
-"""End to end: headless Chromium reads the live dashboard while exporters are being updated.
+"""End to end: headless Chromium reads the live dashboard of a running cluster training.
 
-`running_training` is the seam: today it starts the synthetic feed (real `cluster.metrics`
-exporters updated through the public API by another process); swap its body for a short
-`credit train` run and the test is unchanged. The screenshot lands in test-artifacts/.
+`running_training` starts `credit train --mode cluster` (Ray rollout actors, the buffer
+service, the learner) on skirmish/3m; the dashboard reads its exporters directly or through a
+real Prometheus. The screenshot lands in test-artifacts/.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -29,10 +27,12 @@ ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = ROOT / "test-artifacts"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
-# Panels the actors and the learner feed; the buffer's appear once buffer_service exports.
+# Panels a running RDN training feeds (the KL mask is EM-CAC's and stays at its initial 0).
 FED_PANELS = (
     "env_steps",
     "actor_episodes",
+    "buffer_inserts",
+    "buffer_fill",
     "policy_lag",
     "learner_updates",
     "update_seconds",
@@ -62,30 +62,6 @@ def wait_for(fn, timeout_s=90.0, what="condition"):
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.5)
-
-
-@pytest.fixture(scope="module")
-def running_training(tmp_path_factory):
-    """Something that trains and exports metrics; yields its exporters as "host:port"."""
-    sd = tmp_path_factory.mktemp("training") / "targets.json"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "cluster.dashboard.synthetic",
-            "--sd-file",
-            str(sd),
-            "--actors",
-            "2",
-        ],
-        cwd=ROOT,
-    )
-    try:
-        targets = wait_for(lambda: sd.exists() and m.read_file_sd(sd), what="the feed's SD file")
-        yield [f"{h}:{p}" for h, p in targets]
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
 
 
 @pytest.fixture(scope="module")

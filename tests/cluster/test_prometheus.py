@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import threading
 import time
 
 import pytest
@@ -65,36 +64,6 @@ def test_down_without_up_is_harmless(tmp_path, capsys):
     assert main(["metrics", "status", "--state-dir", str(tmp_path)]) == 1
 
 
-class Feeder:
-    """Two actors and a learner with real exporters, updated by a thread through the public API."""
-
-    def __init__(self) -> None:
-        self.actors = [m.ActorMetrics(i) for i in range(2)]
-        self.learner = m.LearnerMetrics()
-        self.endpoints = [m.serve(a.registry) for a in self.actors]
-        self.endpoints.append(m.serve(self.learner.registry))
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        version = 0
-        while not self._stop.wait(0.1):
-            version += 1
-            for a in self.actors:
-                a.record(episodes=1, env_steps=25)
-            self.learner.record_update(0.01, {"critic": 1.0 / version}, weights_version=version)
-
-    def __enter__(self) -> Feeder:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-        for ep in self.endpoints:
-            m.stop(ep)
-
-
 def env_steps_by_actor(url: str) -> dict[str, float]:
     return {
         r["metric"]["actor"]: float(r["value"][1])
@@ -103,31 +72,40 @@ def env_steps_by_actor(url: str) -> dict[str, float]:
 
 
 @needs_prometheus
-def test_real_prometheus_scrapes_the_exporters(tmp_path, capsys):
+def test_real_prometheus_scrapes_a_cluster_training(running_training, tmp_path, capsys):
+    """`credit metrics up` scrapes a live `credit train --mode cluster`: every actor's env-step
+    counter rises, and the learner's update counter and the buffer's size are there."""
     sd = tmp_path / "targets.json"
     state_dir = tmp_path / "state"
-    with Feeder() as feed:
-        m.write_file_sd(sd, feed.endpoints, {"cluster": "test"})
-        args = ["metrics", "up", "--sd-file", str(sd), "--port", "0", "--state-dir", str(state_dir)]
-        assert main(args) == 0
-        try:
-            state = prom.read_state(state_dir)
-            assert state is not None and state.url.startswith("http://127.0.0.1:")
-            assert state.url in capsys.readouterr().out
-            first = wait_for(
-                lambda: (s := env_steps_by_actor(state.url)) and len(s) == 2 and s,
-                what="both actors in prometheus",
-            )
-            wait_for(
-                lambda: all(v > first[a] for a, v in env_steps_by_actor(state.url).items()),
-                what="credit_env_steps_total to increase for every actor",
-            )
-            updates = prom.query(state.url, "credit_learner_updates_total")
-            assert updates and float(updates[0]["value"][1]) > 0
-            assert updates[0]["metric"]["cluster"] == "test"  # file_sd labels arrive
-            assert main(["metrics", "up", "--state-dir", str(state_dir), "--port", "0"]) == 2
-        finally:
-            assert main(["metrics", "down", "--state-dir", str(state_dir)]) == 0
+    m.write_file_sd(sd, [m.parse_target(t) for t in running_training], {"cluster": "test"})
+    args = ["metrics", "up", "--sd-file", str(sd), "--port", "0", "--state-dir", str(state_dir)]
+    assert main(args) == 0
+    try:
+        state = prom.read_state(state_dir)
+        assert state is not None and state.url.startswith("http://127.0.0.1:")
+        assert state.url in capsys.readouterr().out
+        first = wait_for(
+            lambda: (s := env_steps_by_actor(state.url)) and len(s) == 2 and s,
+            what="both actors in prometheus",
+        )
+        wait_for(
+            lambda: all(v > first[a] for a, v in env_steps_by_actor(state.url).items()),
+            what="credit_env_steps_total to increase for every actor",
+        )
+        updates = wait_for(
+            lambda: [
+                r
+                for r in prom.query(state.url, "credit_learner_updates_total")
+                if float(r["value"][1]) > 0
+            ],
+            what="learner updates in prometheus",
+        )
+        assert updates[0]["metric"]["cluster"] == "test"  # file_sd labels arrive
+        sizes = prom.query(state.url, "credit_buffer_size_episodes")
+        assert {r["metric"]["table"] for r in sizes} == {"replay"}
+        assert main(["metrics", "up", "--state-dir", str(state_dir), "--port", "0"]) == 2
+    finally:
+        assert main(["metrics", "down", "--state-dir", str(state_dir)]) == 0
     assert prom.read_state(state_dir) is None
     with pytest.raises(ProcessLookupError):
         os.kill(state.pid, 0)

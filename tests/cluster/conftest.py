@@ -1,0 +1,58 @@
+"""Shared fixtures: one real cluster training for the tests that watch a live run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cluster import metrics as m
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _wait_for(fn, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = fn()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.5)
+
+
+@pytest.fixture(scope="session")
+def running_training(tmp_path_factory):
+    """A real cluster training (`credit train --mode cluster`, RDN on skirmish/3m, two Ray
+    rollout actors, the buffer service, this learner); yields its four exporters as
+    "host:port" (learner, actor 0, actor 1, buffer service) while it runs."""
+    pytest.importorskip("ray", reason="cluster mode needs ray")
+    out = tmp_path_factory.mktemp("training")
+    env = {**os.environ, "CREDIT_STATE_DIR": str(out / "state")}
+    cmd = [sys.executable, "-m", "cluster.cli", "train", "--mode", "cluster", "--actors", "2"]
+    cmd += ["--algo", "rdn", "--env", "skirmish/3m", "--t-max", "100000000"]
+    cmd += ["--out", str(out / "run"), "--set", "run.test_interval=300"]
+    cmd += ["--set", "run.test_episodes=4"]
+    log = open(out / "train.log", "w")  # noqa: SIM115 - closed after the process
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=log)
+    sd = out / "run" / "targets.json"
+    try:
+        targets = _wait_for(
+            lambda: sd.exists() and len(m.read_file_sd(sd)) == 4 and m.read_file_sd(sd),
+            timeout_s=180,
+            what="the training's file-SD file",
+        )
+        yield [f"{h}:{p}" for h, p in targets]
+    finally:
+        proc.send_signal(signal.SIGINT)  # a clean shutdown: actors, buffer service, Ray
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
