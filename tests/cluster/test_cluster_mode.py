@@ -74,7 +74,7 @@ def _assert_whole_and_unique(state):
 def test_cluster_outputs_match_local_mode(tmp_path, env):
     out = tmp_path / "run"
     done = subprocess.run(
-        _cli([*BASE, "--t-max", "200", "--out", str(out)]),
+        _cli([*BASE, "--t-max", "100", "--out", str(out)]),
         env=env,
         capture_output=True,
         text=True,
@@ -93,7 +93,7 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
         "final_test_won_mean",
     }
     assert local_keys <= set(summary)
-    assert summary["mode"] == "cluster" and summary["t_env"] >= 200 and summary["updates"] > 0
+    assert summary["mode"] == "cluster" and summary["t_env"] >= 100 and summary["updates"] > 0
     lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert lines and all(
         {"t_env", "episode", "test_return_mean", "wall_s"} <= set(x) for x in lines
@@ -108,9 +108,9 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
 
 def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
     out = tmp_path / "run"
-    proc = _start([*BASE, "--t-max", "1200", *BIG_REPLAY], env, out)
+    proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
     try:
-        _wait_for(lambda: _progress(out) >= 100, 240, "training progress", proc)
+        _wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
         victim = json.loads((out / "cluster.json").read_text())["actors"][0]
         killed_at_us = time.time_ns() // 1000
         os.kill(victim["pid"], signal.SIGKILL)
@@ -118,7 +118,7 @@ def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
     finally:
         proc.kill()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["actor_restarts"] >= 1 and summary["t_env"] >= 1200
+    assert summary["actor_restarts"] >= 1 and summary["t_env"] >= 600
     after = json.loads((out / "cluster.json").read_text())["actors"][0]
     assert after["pid"] != victim["pid"]
     state = _stored_episodes(out)
@@ -141,9 +141,9 @@ def _scrape_inserts(port: int) -> float:
 
 def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, env):
     out = tmp_path / "run"
-    proc = _start([*BASE, "--t-max", "1200", *BIG_REPLAY], env, out)
+    proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
     try:
-        _wait_for(lambda: _progress(out) >= 100, 240, "training progress", proc)
+        _wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
         service = json.loads((out / "cluster.json").read_text())["buffer"]
         acked = _scrape_inserts(service["metrics_port"])  # counted when acknowledged
         os.kill(service["pid"], signal.SIGKILL)
@@ -152,7 +152,7 @@ def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, e
     finally:
         proc.kill()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["buffer_restarts"] >= 1 and summary["t_env"] >= 1200
+    assert summary["buffer_restarts"] >= 1 and summary["t_env"] >= 600
     state = _stored_episodes(out)
     assert len(state.episodes) >= acked
     _assert_whole_and_unique(state)
@@ -170,9 +170,9 @@ def _checkpoint(out: Path):
 
 def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     out = tmp_path / "run"
-    proc = _start([*BASE, "--t-max", "100000", "--set", "run.save_interval=100"], env, out)
+    proc = _start([*BASE, "--t-max", "100000", "--set", "run.save_interval=50"], env, out)
     try:
-        _wait_for(lambda: (c := _checkpoint(out)) and c["t_env"] >= 300, 240, "a checkpoint", proc)
+        _wait_for(lambda: (c := _checkpoint(out)) and c["t_env"] >= 150, 240, "a checkpoint", proc)
         service_pid = json.loads((out / "cluster.json").read_text())["buffer"]["pid"]
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
@@ -184,7 +184,7 @@ def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     )
     saved = _checkpoint(out)
     learner = torch.load(out / "checkpoint" / "learner.pt", weights_only=False)
-    target = saved["t_env"] + 300
+    target = saved["t_env"] + 150
     done = subprocess.run(
         _cli(["--resume", str(out), "--mode", "cluster", "--t-max", str(target)]),
         env=env,
