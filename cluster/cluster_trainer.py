@@ -12,7 +12,9 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import ray
@@ -26,6 +28,40 @@ from cluster.ray_actors import Coordinator, RolloutActor
 from cluster.trainer import EvalRecord, Progress, TrainerCore, write_json
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopStats:
+    """Cumulative counters of the learner loop, cheap enough to keep always (read by
+    `credit bench scaling` between windows; never reset).
+
+    Attributes:
+        updates: learner steps taken by this loop.
+        consumed_env_steps: transitions (filled steps) in the batches those steps trained on.
+        sample_requests: sample requests sent to the buffer service.
+        sample_s: seconds spent inside those requests (rate-limiter wait, transfer, decode).
+        sample_timeouts: requests the rate limiter refused within cluster.sample_timeout_s.
+        lag_counts: policy lag at sample time (learner version minus the episode's
+            policy_version, clipped at 0) -> how many sampled episodes had it.
+    """
+
+    updates: int = 0
+    consumed_env_steps: int = 0
+    sample_requests: int = 0
+    sample_s: float = 0.0
+    sample_timeouts: int = 0
+    lag_counts: Counter = field(default_factory=Counter)
+
+    def snapshot(self) -> dict:
+        """A copy safe to keep while the loop goes on (lag_counts copied)."""
+        return {
+            "updates": self.updates,
+            "consumed_env_steps": self.consumed_env_steps,
+            "sample_requests": self.sample_requests,
+            "sample_s": self.sample_s,
+            "sample_timeouts": self.sample_timeouts,
+            "lag_counts": dict(self.lag_counts),
+        }
 
 
 class ClusterTrainer:
@@ -65,6 +101,8 @@ class ClusterTrainer:
         self.endpoints: list[tuple[str, int]] = []
         self.learner_endpoint: tuple[str, int] | None = None
         self.described_buffer_restarts = 0
+        self.stats = LoopStats()
+        self.stop_requested = False  # set from another thread to end `train` early
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -165,7 +203,7 @@ class ClusterTrainer:
     ) -> None:
         core, run = self.core, self.cfg.run
         bar = Progress(run.t_max) if progress else None
-        while core.t_env < run.t_max:
+        while core.t_env < run.t_max and not self.stop_requested:
             self._supervise()
             batch = self._sample(self.plan.table, self.plan.batch_size)
             extra = (
@@ -176,6 +214,8 @@ class ClusterTrainer:
             if batch is not None and (extra is not None or not self.plan.extra_table):
                 started = time.perf_counter()
                 core.last_metrics = core.learner.step(batch, extra)
+                self.stats.updates += 1
+                self.stats.consumed_env_steps += int(batch.filled.sum())
                 if self.metrics:
                     seconds = time.perf_counter() - started
                     self.metrics.record_update(seconds, core.last_metrics, core.learner.updates)
@@ -200,13 +240,19 @@ class ClusterTrainer:
     def _sample(self, table: str, n: int) -> EpisodeBatch | None:
         """A batch from `table`, or None if the limiter kept it back or every episode was
         staler than max_policy_lag."""
+        started = time.perf_counter()
+        self.stats.sample_requests += 1
         try:
             episodes: list[Episode] = self.client.sample_episodes(
                 table, n, timeout_s=self.ccfg.sample_timeout_s
             )
         except RateLimitedError:
+            self.stats.sample_timeouts += 1
             return None
+        finally:
+            self.stats.sample_s += time.perf_counter() - started
         lags = [self.core.learner.updates - ep.policy_version for ep in episodes]
+        self.stats.lag_counts.update(max(0, lag) for lag in lags)
         if self.metrics:
             self.metrics.record_policy_lag(max(0, lag) for lag in lags)
         limit = self.ccfg.max_policy_lag
