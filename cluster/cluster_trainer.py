@@ -12,9 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import ray
@@ -23,45 +21,12 @@ import yaml
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import Episode, EpisodeBatch
 from cluster.buffer_proc import BufferProcess
+from cluster.loop_stats import LoopStats
 from cluster.metrics import LearnerMetrics, default_sd_file, serve, write_file_sd
 from cluster.ray_actors import Coordinator, RolloutActor
 from cluster.trainer import EvalRecord, Progress, TrainerCore, write_json
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class LoopStats:
-    """Cumulative counters of the learner loop, cheap enough to keep always (read by
-    `credit bench scaling` between windows; never reset).
-
-    Attributes:
-        updates: learner steps taken by this loop.
-        consumed_env_steps: transitions (filled steps) in the batches those steps trained on.
-        sample_requests: sample requests sent to the buffer service.
-        sample_s: seconds spent inside those requests (rate-limiter wait, transfer, decode).
-        sample_timeouts: requests the rate limiter refused within cluster.sample_timeout_s.
-        lag_counts: policy lag at sample time (learner version minus the episode's
-            policy_version, clipped at 0) -> how many sampled episodes had it.
-    """
-
-    updates: int = 0
-    consumed_env_steps: int = 0
-    sample_requests: int = 0
-    sample_s: float = 0.0
-    sample_timeouts: int = 0
-    lag_counts: Counter = field(default_factory=Counter)
-
-    def snapshot(self) -> dict:
-        """A copy safe to keep while the loop goes on (lag_counts copied)."""
-        return {
-            "updates": self.updates,
-            "consumed_env_steps": self.consumed_env_steps,
-            "sample_requests": self.sample_requests,
-            "sample_s": self.sample_s,
-            "sample_timeouts": self.sample_timeouts,
-            "lag_counts": dict(self.lag_counts),
-        }
 
 
 class ClusterTrainer:
@@ -214,15 +179,18 @@ class ClusterTrainer:
             if batch is not None and (extra is not None or not self.plan.extra_table):
                 started = time.perf_counter()
                 core.last_metrics = core.learner.step(batch, extra)
+                seconds = time.perf_counter() - started
                 self.stats.updates += 1
+                self.stats.update_s += seconds
                 self.stats.consumed_env_steps += int(batch.filled.sum())
                 if self.metrics:
-                    seconds = time.perf_counter() - started
                     self.metrics.record_update(seconds, core.last_metrics, core.learner.updates)
                     if "kl_masked_fraction" in core.last_metrics:
                         self.metrics.set_kl_masked_fraction(core.last_metrics["kl_masked_fraction"])
                 if core.learner.updates % self.ccfg.publish_interval == 0:
+                    started = time.perf_counter()
                     self.publish()
+                    self.stats.publish_s += time.perf_counter() - started
             core.t_env, core.episodes, _ = ray.get(self.coordinator.progress.remote())
             core.periodic(self._on_eval(on_eval), bar, self.loop_state)
         if bar:

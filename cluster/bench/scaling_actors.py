@@ -22,7 +22,7 @@ import ray
 from actors.rollout import clock_seq
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import Episode, EpisodeSchema
-from cluster.cluster_trainer import LoopStats
+from cluster.loop_stats import LoopStats
 
 
 def synthetic_episode(schema: EpisodeSchema, length: int, actor_id: int, rng) -> Episode:

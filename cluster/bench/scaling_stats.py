@@ -200,6 +200,7 @@ def window_figures(old: Mapping, new: Mapping, clk_tck: int, ncpu: int) -> dict[
     cores["others"] = max(0.0, cores["machine_busy"] - cores["total"])
     tables = new["buffer"]["tables"]
     sample_requests = ln["sample_requests"] - lo["sample_requests"]
+    inserted = new["t_env"] - old["t_env"]
     return {
         "seconds": dt,
         "insert_env_steps_per_s": _rate(new["t_env"], old["t_env"], dt),
@@ -207,9 +208,18 @@ def window_figures(old: Mapping, new: Mapping, clk_tck: int, ncpu: int) -> dict[
         "learner_env_steps_per_s": _rate(ln["consumed_env_steps"], lo["consumed_env_steps"], dt),
         "updates_per_s": _rate(ln["updates"], lo["updates"], dt),
         "sample_requests_per_s": sample_requests / dt,
-        "learner_sampling_fraction": _rate(ln["sample_s"], lo["sample_s"], dt),
+        "learner_time": {
+            "sampling_fraction": _rate(ln["sample_s"], lo["sample_s"], dt),
+            "updating_fraction": _rate(ln["update_s"], lo["update_s"], dt),
+            "publishing_fraction": _rate(ln["publish_s"], lo["publish_s"], dt),
+        },
         "learner_sample_timeouts": ln["sample_timeouts"] - lo["sample_timeouts"],
         "cpu_cores": cores,
+        # CPU time per inserted env step: steadier than rates on a shared machine.
+        "cpu_ms_per_inserted_step": {
+            g: (1000.0 * cores[g] * dt / inserted if inserted else None)
+            for g in (*CPU_GROUPS, "total")
+        },
         "buffer_size": {name: t["size"] for name, t in tables.items()},
         "policy_lag": lag_summary(counts_delta(ln["lag_counts"], lo["lag_counts"])),
         "limiter": {
