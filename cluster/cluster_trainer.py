@@ -79,7 +79,9 @@ class ClusterTrainer:
             self.buffer.port,
             token=self.buffer.token,
             schema=schema,
-            max_retries=1000,
+            # Few retries (about 3 s of backoff): this loop is what restarts a dead service
+            # (`_supervise`), so it must not sit in a request retrying against it.
+            max_retries=6,
         )
         self.coordinator = Coordinator.remote(self.core.t_env, self.core.episodes)
         self.publish()
@@ -216,6 +218,9 @@ class ClusterTrainer:
             )
         except RateLimitedError:
             self.stats.sample_timeouts += 1
+            return None
+        except ConnectionError as e:  # the service is down: `_supervise` restarts it
+            log.warning("sample from %s failed (%s); checking the buffer service", table, e)
             return None
         finally:
             self.stats.sample_s += time.perf_counter() - started
