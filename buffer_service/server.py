@@ -27,6 +27,7 @@ import logging
 import os
 import random
 import threading
+import time
 from typing import Any
 
 from buffer_service import codec
@@ -70,6 +71,8 @@ class BufferServer:
         self._server: asyncio.base_events.Server | None = None
         self._changed: asyncio.Condition | None = None
         self._conns: set[asyncio.Task] = set()
+        # Requests the rate limiter held back, per op: [count, seconds waited, timeouts].
+        self.limiter_waits: dict[str, list[float]] = {"insert": [0, 0.0, 0], "sample": [0, 0.0, 0]}
 
     async def start(self) -> None:
         """Restore from the snapshot dir, bind, and start accepting connections."""
@@ -255,6 +258,7 @@ class BufferServer:
                 lambda: all(self.state.tables[t].limiter.can_insert(1) for t in tables),
                 self.cfg.insert_timeout_s,
                 f"insert into {tables}",
+                "insert",
             )
         fresh = [ep for ep in eps if not self.state.is_duplicate(ep.key)]
         if fresh and self.storage is not None:
@@ -282,7 +286,7 @@ class BufferServer:
         if not isinstance(timeout, (int, float)) or not timeout >= 0:
             raise RequestError("bad_request", f"timeout_s {timeout!r} must be a number >= 0")
         timeout = min(float(timeout), self.cfg.sample_timeout_s)
-        await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}")
+        await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}", "sample")
         keys = self.state.choose(name, n, self.rng)
         if self.storage is not None:
             self.storage.log_sample(name, keys)
@@ -292,17 +296,24 @@ class BufferServer:
         await self._notify()
         return self._ok(episodes=[codec.episode_to_wire(ep) for ep in eps])
 
-    async def _wait(self, ready, timeout: float, what: str) -> None:
+    async def _wait(self, ready, timeout: float, what: str, op: str) -> None:
+        """Wait until `ready()` (the rate limiter allows `op`), counting held-back requests."""
         assert self._changed is not None
         async with self._changed:
             if ready():
                 return
+            waits = self.limiter_waits[op]
+            waits[0] += 1
+            started = time.monotonic()
             try:
                 await asyncio.wait_for(self._changed.wait_for(ready), timeout)
             except TimeoutError:
+                waits[2] += 1
                 raise RequestError(
                     "rate_limited", f"{what}: rate limiter did not allow it within {timeout:g} s"
                 ) from None
+            finally:
+                waits[1] += time.monotonic() - started
 
     async def _notify(self) -> None:
         assert self._changed is not None
@@ -319,8 +330,14 @@ class BufferServer:
             self.metrics.size.labels(table=name).set(len(t))
 
     def stats(self) -> dict[str, Any]:
-        """Table sizes and counters, episodes stored, connections, log generation."""
+        """Table sizes and counters, episodes stored, connections, log generation, and the
+        requests the rate limiter held back (`limiter_waits`: per op, how many, the seconds
+        they waited in total, and how many timed out)."""
         st = self.state.stats()
+        st["limiter_waits"] = {
+            op: {"count": int(c), "seconds": round(s, 6), "timeouts": int(t)}
+            for op, (c, s, t) in self.limiter_waits.items()
+        }
         st["connections"] = len(self._conns)
         st["generation"] = self.storage.gen if self.storage else None
         return st

@@ -21,6 +21,7 @@ import yaml
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import Episode, EpisodeBatch
 from cluster.buffer_proc import BufferProcess
+from cluster.loop_stats import LoopStats
 from cluster.metrics import LearnerMetrics, default_sd_file, serve, write_file_sd
 from cluster.ray_actors import Coordinator, RolloutActor
 from cluster.trainer import EvalRecord, Progress, TrainerCore, write_json
@@ -65,6 +66,8 @@ class ClusterTrainer:
         self.endpoints: list[tuple[str, int]] = []
         self.learner_endpoint: tuple[str, int] | None = None
         self.described_buffer_restarts = 0
+        self.stats = LoopStats()
+        self.stop_requested = False  # set from another thread to end `train` early
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -76,7 +79,9 @@ class ClusterTrainer:
             self.buffer.port,
             token=self.buffer.token,
             schema=schema,
-            max_retries=1000,
+            # Few retries (about 3 s of backoff): this loop is what restarts a dead service
+            # (`_supervise`), so it must not sit in a request retrying against it.
+            max_retries=6,
         )
         self.coordinator = Coordinator.remote(self.core.t_env, self.core.episodes)
         self.publish()
@@ -165,7 +170,7 @@ class ClusterTrainer:
     ) -> None:
         core, run = self.core, self.cfg.run
         bar = Progress(run.t_max) if progress else None
-        while core.t_env < run.t_max:
+        while core.t_env < run.t_max and not self.stop_requested:
             self._supervise()
             batch = self._sample(self.plan.table, self.plan.batch_size)
             extra = (
@@ -176,13 +181,18 @@ class ClusterTrainer:
             if batch is not None and (extra is not None or not self.plan.extra_table):
                 started = time.perf_counter()
                 core.last_metrics = core.learner.step(batch, extra)
+                seconds = time.perf_counter() - started
+                self.stats.updates += 1
+                self.stats.update_s += seconds
+                self.stats.consumed_env_steps += int(batch.filled.sum())
                 if self.metrics:
-                    seconds = time.perf_counter() - started
                     self.metrics.record_update(seconds, core.last_metrics, core.learner.updates)
                     if "kl_masked_fraction" in core.last_metrics:
                         self.metrics.set_kl_masked_fraction(core.last_metrics["kl_masked_fraction"])
                 if core.learner.updates % self.ccfg.publish_interval == 0:
+                    started = time.perf_counter()
                     self.publish()
+                    self.stats.publish_s += time.perf_counter() - started
             core.t_env, core.episodes, _ = ray.get(self.coordinator.progress.remote())
             core.periodic(self._on_eval(on_eval), bar, self.loop_state)
         if bar:
@@ -200,13 +210,22 @@ class ClusterTrainer:
     def _sample(self, table: str, n: int) -> EpisodeBatch | None:
         """A batch from `table`, or None if the limiter kept it back or every episode was
         staler than max_policy_lag."""
+        started = time.perf_counter()
+        self.stats.sample_requests += 1
         try:
             episodes: list[Episode] = self.client.sample_episodes(
                 table, n, timeout_s=self.ccfg.sample_timeout_s
             )
         except RateLimitedError:
+            self.stats.sample_timeouts += 1
             return None
+        except ConnectionError as e:  # the service is down: `_supervise` restarts it
+            log.warning("sample from %s failed (%s); checking the buffer service", table, e)
+            return None
+        finally:
+            self.stats.sample_s += time.perf_counter() - started
         lags = [self.core.learner.updates - ep.policy_version for ep in episodes]
+        self.stats.lag_counts.update(max(0, lag) for lag in lags)
         if self.metrics:
             self.metrics.record_policy_lag(max(0, lag) for lag in lags)
         limit = self.ccfg.max_policy_lag

@@ -103,16 +103,31 @@ class RolloutActor:
         self.coordinator = coordinator
         self.metrics = ActorMetrics(actor_id) if metrics else None
         self.endpoint = serve(self.metrics.registry) if self.metrics else None
+        # Cumulative over this process's life (`stats`): where the loop's time goes.
+        self.counters = {
+            "rounds": 0,
+            "env_steps": 0,
+            "act_s": 0.0,  # run_round: env steps and policy forward passes
+            "insert_s": 0.0,  # client.insert, incl. rate-limiter waits and the fsync
+            "sync_s": 0.0,  # coordinator.sync round trips and fetching new weights
+            "insert_refusals": 0,  # inserts the rate limiter refused within its timeout
+        }
 
     def describe(self) -> dict:
         """pid and metrics endpoint of this actor process."""
         return {"actor_id": self.actor_id, "pid": os.getpid(), "metrics": self.endpoint}
 
+    def stats(self) -> dict:
+        """This process's loop counters (see __init__) with its pid and weights version."""
+        return {**self.counters, "pid": os.getpid(), "version": self.worker.version}
+
     def run(self) -> dict:
         """Collect and insert until the coordinator says stop; returns this life's totals."""
         steps = episodes = 0
         total_steps = total_episodes = 0
+        c = self.counters
         while True:
+            started = time.perf_counter()
             _version, newer, t_env, stop = ray.get(
                 self.coordinator.sync.remote(self.actor_id, self.worker.version, steps, episodes)
             )
@@ -123,11 +138,19 @@ class RolloutActor:
                 self.worker.set_weights(weights)
                 if self.metrics:
                     self.metrics.set_weights_version(weights.version)
+            acting = time.perf_counter()
             result = self.worker.run_round(t_env=t_env)
+            inserting = time.perf_counter()
             self._insert(result.episodes)
+            done = time.perf_counter()
             steps, episodes = result.env_steps, len(result.episodes)
             total_steps += steps
             total_episodes += episodes
+            c["rounds"] += 1
+            c["env_steps"] += steps
+            c["sync_s"] += acting - started
+            c["act_s"] += inserting - acting
+            c["insert_s"] += done - inserting
             if self.metrics:
                 self.metrics.record(episodes, steps)
 
@@ -138,6 +161,7 @@ class RolloutActor:
                 self.client.insert(episodes)
                 return
             except RateLimitedError:
+                self.counters["insert_refusals"] += 1
                 stop = ray.get(
                     self.coordinator.sync.remote(self.actor_id, self.worker.version, 0, 0)
                 )[3]

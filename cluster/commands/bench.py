@@ -11,9 +11,10 @@ import argparse
 from cluster.bench import codec as codec_bench
 from cluster.bench import env as env_bench
 from cluster.bench import matrix as matrix_bench
+from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
 
-BENCHES: list = [env_bench, codec_bench, service_bench, matrix_bench]
+BENCHES: list = [env_bench, codec_bench, service_bench, matrix_bench, scaling_bench]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
