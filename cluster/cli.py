@@ -11,6 +11,7 @@ from actors.envs.base import EnvError
 from cluster.cli_errors import UsageError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import buffer as buffer_cmd
+from cluster.commands import cluster as cluster_cmd
 from cluster.commands import dashboard as dashboard_cmd
 from cluster.commands import demo as demo_cmd
 from cluster.commands import env as env_cmd
@@ -29,6 +30,7 @@ COMMANDS = [
     env_cmd,
     bench_cmd,
     buffer_cmd,
+    cluster_cmd,
     metrics_cmd,
     dashboard_cmd,
 ]

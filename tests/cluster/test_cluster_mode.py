@@ -199,3 +199,37 @@ def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     assert resumed["updates"] > learner["updates"]
     step = lambda s: float(s["optimiser"]["state"][0]["step"])  # noqa: E731
     assert step(resumed) == step(learner) + (resumed["updates"] - learner["updates"])
+
+
+def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
+    """`credit cluster up` starts a Ray head on 127.0.0.1 that `--address auto` joins; `down`
+    stops it. (`down` is `ray stop`: every Ray process of this user on this machine.)"""
+    cli = [sys.executable, "-m", "cluster.cli", "cluster"]
+    up = subprocess.run(
+        [*cli, "up", "--num-cpus", "3", "--port", "6399"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert up.returncode == 0, up.stderr[-2000:]
+    try:
+        status = subprocess.run(
+            [*cli, "status"], env=env, capture_output=True, text=True, timeout=120
+        )
+        assert "address: 127.0.0.1:6399" in status.stdout and "3.0 CPU" in status.stdout
+        again = subprocess.run(
+            [*cli, "up", "--port", "6399"], env=env, capture_output=True, text=True, timeout=120
+        )
+        assert again.returncode == 2 and "already up" in again.stderr
+        out = tmp_path / "run"
+        args = [*BASE, "--address", "auto", "--t-max", "100", "--out", str(out)]
+        done = subprocess.run(_cli(args), env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert "joined Ray cluster at 127.0.0.1:6399" in done.stderr
+        assert json.loads((out / "summary.json").read_text())["t_env"] >= 100
+    finally:
+        down = subprocess.run([*cli, "down"], env=env, capture_output=True, text=True, timeout=120)
+    assert down.returncode == 0
+    status = subprocess.run([*cli, "status"], env=env, capture_output=True, text=True, timeout=60)
+    assert "no credit Ray cluster recorded" in status.stdout
