@@ -51,19 +51,25 @@ def _attack_or(venv: SkirmishVecEnv, score: np.ndarray, fallback: np.ndarray) ->
 
 
 def _advance(venv: SkirmishVecEnv) -> np.ndarray:
-    """Move toward the nearest enemy until one is in sight range, then hold (stop), so the
-    enemy walks into range rather than getting the first volley."""
-    b, N = venv.battle, venv.st.N
+    """Move toward the nearest enemy; but before contact (no enemy within shoot range of any
+    agent) hold once an enemy is in sight, so the enemy walks into range rather than
+    getting the first volley."""
+    b, N, cfg = venv.battle, venv.st.N, venv.cfg
     _, _, dist = b.pairwise()
-    seen = (np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf) < venv.cfg.sight_range).any(-1)
-    return np.where(seen, 1, _toward(venv, 1.0))
+    d = np.where(b.alive[:, None, N:] & b.alive[:, :N, None], dist[:, :N, N:], np.inf)
+    seen = (d < cfg.sight_range).any(-1)
+    contact = (d <= cfg.shoot_range).any((1, 2))
+    return np.where(seen & ~contact[:, None], 1, _toward(venv, 1.0))
 
 
 def focus_fire_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
-    """All attack the weakest enemy (health + shield) in range, else advance."""
+    """All attack the weakest enemy (health + shield) in range, else advance; ties go to the
+    enemy closest to the team as a whole, so that the agents pick the same one."""
     b, N = venv.battle, venv.st.N
-    weak = (b.hp[:, N:] + b.sh[:, N:])[:, None, :]
-    score = np.broadcast_to(weak + 1e-6 * np.arange(venv.st.E), (b.M, N, venv.st.E))
+    _, _, dist = b.pairwise()
+    d = np.where(b.alive[:, :N, None], dist[:, :N, N:], 0.0).sum(1)  # [M, E]
+    weak = (b.hp[:, N:] + b.sh[:, N:]) + 1e-3 * d / max(venv.cfg.sight_range * N, 1.0)
+    score = np.broadcast_to(weak[:, None, :], (b.M, N, venv.st.E))
     return _attack_or(venv, score, _advance(venv))
 
 
