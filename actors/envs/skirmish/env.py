@@ -139,16 +139,14 @@ class SkirmishVecEnv:
                 before, reward, term, won, timeout)  # fmt: skip
         finished = term & active
         self.done |= finished
-        n_to = int(timeout.sum())
         self.stats["battles_game"] += int(finished.sum())
         self.stats["battles_won"] += int(won.sum())
-        self.stats["timeouts"] += n_to
-        infos: list[dict[str, Any]] = [{} for _ in range(M)]
-        for k in np.flatnonzero(active):
-            infos[k] = {"battle_won": bool(won[k]), "episode_limit": bool(timeout[k])}
-        for k in np.flatnonzero(finished):
-            infos[k]["dead_allies"] = int((~b.alive[k, :N]).sum())
-            infos[k]["dead_enemies"] = int((~b.alive[k, N:]).sum())
+        self.stats["timeouts"] += int(timeout.sum())
+        flags = zip(won.tolist(), timeout.tolist(), active.tolist(), strict=True)
+        infos = [{"battle_won": w, "episode_limit": to} if a else {} for w, to, a in flags]
+        for k in np.flatnonzero(finished).tolist():
+            infos[k]["dead_allies"] = int(N - b.alive[k, :N].sum())
+            infos[k]["dead_enemies"] = int(self.st.E - b.alive[k, N:].sum())
         return reward.astype(np.float32), term, infos
 
     # -- views (cached until the next step or reset) ----------------------------------------

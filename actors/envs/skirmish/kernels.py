@@ -381,6 +381,33 @@ def _separate(m, par, uf, collide, f, alive, nx, ny):
 
 
 @njit(cache=True)
+def reset_battles(envs, draws, jitter, start_pos, goal, team, uf, energy_start, f, g, alive, way):
+    """Put battles `envs` at their start. draws [k, 4 + 2U] uniform [0, 1) per env: each
+    side's formation shift (jitter[0]) then a per-unit offset (jitter[1])."""
+    U = alive.shape[1]
+    for r in range(envs.shape[0]):
+        m = envs[r]
+        d = draws[r]
+        for u in range(U):
+            side = team[u]
+            dx = (2 * d[2 * side] - 1) * jitter[0] + (2 * d[4 + 2 * u] - 1) * jitter[1]
+            dy = (2 * d[2 * side + 1] - 1) * jitter[0] + (2 * d[5 + 2 * u] - 1) * jitter[1]
+            f[m, X, u] = min(max(start_pos[u, 0] + dx, 0.0), jitter[2])
+            f[m, Y, u] = min(max(start_pos[u, 1] + dy, 0.0), jitter[3])
+            f[m, HP, u] = uf[u, HP_MAX]
+            f[m, SH, u] = uf[u, SH_MAX]
+            f[m, CD, u] = 0.0
+            f[m, EN, u] = energy_start[u]
+            f[m, SINCE, u] = 0.0
+            alive[m, u] = True
+            g[m, :, u] = 0
+            g[m, OTGT, u] = -1
+            g[m, LAST_TGT, u] = -1
+        way[m, 0] = goal[0] + (2 * d[0] - 1) * jitter[0]
+        way[m, 1] = goal[1] + (2 * d[1] - 1) * jitter[0]
+
+
+@njit(cache=True)
 def set_orders(acts, active, avail, N, agent_healer, g, last_action):
     """Check every active agent's action against `avail` and turn actions into orders.
 

@@ -39,7 +39,7 @@ class Statics:
         self.types = ut
         loop = cfg.step_mul // cfg.substeps
         self.loops = float(loop)
-        self.team = np.array([0] * self.N + [1] * self.E)
+        self.team = np.array([0] * self.N + [1] * self.E, np.int64)
         self.hp_max = np.array([t.hp for t in ut], np.float64)
         self.sh_max = np.array([t.shield for t in ut], np.float64)
         self.range = np.array([t.range for t in ut], np.float64)
@@ -53,7 +53,8 @@ class Statics:
         self.healable = ~self.air & (self.kind != KINDS.index("healer"))
         self.map_w, self.map_h = spec.map_size
         point = spec.attack_point
-        self.goal = np.array(point) if point is not None else self.start_pos[: self.N].mean(0)
+        goal = np.array(point) if point is not None else self.start_pos[: self.N].mean(0)
+        self.goal = np.asarray(goal, np.float64)
         self._pack(ut, cfg, loop)
 
     def _pack(self, ut: list, cfg: SkirmishConfig, loop: int) -> None:
@@ -125,25 +126,16 @@ class Battle:
     last_fire = property(lambda self: self.g[:, K.LAST_TGT] >= 0)
 
     def reset(self, envs: np.ndarray, rngs: list[np.random.Generator]) -> None:
-        """Put battles `envs` (indices) at their start, each jittered by its own generator."""
-        st, j, uj = self.st, self.cfg.start_jitter, self.cfg.unit_jitter
-        f = self.f
-        for m in envs:
-            # Each side's formation shifts as a whole; units move a little within it.
-            shift = rngs[m].uniform(-j, j, size=(2, 2))
-            noise = shift[st.team] + rngs[m].uniform(-uj, uj, size=(st.U, 2))
-            f[m, K.X] = np.clip(st.start_pos[:, 0] + noise[:, 0], 0, st.map_w - 1e-3)
-            f[m, K.Y] = np.clip(st.start_pos[:, 1] + noise[:, 1], 0, st.map_h - 1e-3)
-            self.way[m] = st.goal + shift[0]
-        f[envs, K.HP] = st.hp_max
-        f[envs, K.SH] = st.sh_max
-        f[envs, K.CD] = 0.0
-        f[envs, K.EN] = st.energy_start
-        f[envs, K.SINCE] = 0.0
-        self.alive[envs] = True
-        self.g[envs] = 0
-        self.g[envs, K.OTGT] = -1
-        self.g[envs, K.LAST_TGT] = -1
+        """Put battles `envs` (indices) at their start, each jittered by its own generator:
+        each side's formation shifts as a whole; units move a little within it."""
+        st, cfg = self.st, self.cfg
+        envs = np.asarray(envs, np.int64).reshape(-1)
+        draws = np.empty((envs.size, 4 + 2 * st.U))
+        for r, m in enumerate(envs.tolist()):
+            draws[r] = rngs[m].random(4 + 2 * st.U)
+        jitter = np.array([cfg.start_jitter, cfg.unit_jitter, st.map_w - 1e-3, st.map_h - 1e-3])
+        K.reset_battles(envs, draws, jitter, st.start_pos, st.goal, st.team, st.uf,
+                        st.energy_start, self.f, self.g, self.alive, self.way)  # fmt: skip
 
     def step(self, active: np.ndarray) -> np.ndarray:
         """Advance the `active` [M] battles by one agent step (all sub-steps).
