@@ -150,6 +150,12 @@ class SkirmishVecEnv:
         return reward.astype(np.float32), term, infos
 
     # -- views (cached until the next step or reset) ----------------------------------------
+    def pairwise(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """dx, dy, dist [M, U, U] of the current positions (for scripts), cached per step."""
+        if "pairwise" not in self._cache:
+            self._cache["pairwise"] = self.battle.pairwise()
+        return self._cache["pairwise"]
+
     def get_avail_actions(self) -> np.ndarray:
         if "avail" not in self._cache:
             self._cache["avail"] = avail_actions(self.battle, self.lay, self.cfg)

@@ -27,7 +27,7 @@ def _toward(venv: SkirmishVecEnv, sign: float) -> np.ndarray:
     """Move action [M, N] toward (sign=+1) or away from (-1) the nearest living enemy,
     along the larger axis; falls back to stop when that move is unavailable."""
     b, N = venv.battle, venv.st.N
-    dx, dy, dist = b.pairwise()
+    dx, dy, dist = venv.pairwise()
     d = np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf)
     j = d.argmin(-1)
     tx = np.take_along_axis(dx[:, :N, N:], j[..., None], 2)[..., 0] * sign
@@ -55,7 +55,7 @@ def _advance(venv: SkirmishVecEnv) -> np.ndarray:
     agent) hold once an enemy is in sight, so the enemy walks into range rather than
     getting the first volley."""
     b, N, cfg = venv.battle, venv.st.N, venv.cfg
-    _, _, dist = b.pairwise()
+    _, _, dist = venv.pairwise()
     d = np.where(b.alive[:, None, N:] & b.alive[:, :N, None], dist[:, :N, N:], np.inf)
     seen = (d < cfg.sight_range).any(-1)
     contact = (d <= cfg.shoot_range).any((1, 2))
@@ -66,7 +66,7 @@ def focus_fire_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndar
     """All attack the weakest enemy (health + shield) in range, else advance; ties go to the
     enemy closest to the team as a whole, so that the agents pick the same one."""
     b, N = venv.battle, venv.st.N
-    _, _, dist = b.pairwise()
+    _, _, dist = venv.pairwise()
     d = np.where(b.alive[:, :N, None], dist[:, :N, N:], 0.0).sum(1)  # [M, E]
     weak = (b.hp[:, N:] + b.sh[:, N:]) + 1e-3 * d / max(venv.cfg.sight_range * N, 1.0)
     score = np.broadcast_to(weak[:, None, :], (b.M, N, venv.st.E))
@@ -75,14 +75,14 @@ def focus_fire_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndar
 
 def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
     """Everyone attacks the nearest enemy in range, else advances."""
-    b, N = venv.battle, venv.st.N
-    _, _, dist = b.pairwise()
+    N = venv.st.N
+    _, _, dist = venv.pairwise()
     return _attack_or(venv, dist[:, :N, N:], _advance(venv))
 
 
 def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
-    """Banelings charge the nearest enemy; zerglings step back while any baneling lives,
-    then attack the nearest enemy."""
+    """Banelings charge the nearest enemy; zerglings step back (away from the nearest enemy)
+    while any baneling, ours or the enemy's, lives, then attack the nearest enemy."""
     b, st, N = venv.battle, venv.st, venv.st.N
     nearest = nearest_policy(venv, rng)
     is_bane = st.kind[:N] == KINDS.index("baneling")

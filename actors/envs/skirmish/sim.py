@@ -152,7 +152,7 @@ class Battle:
 
     def pairwise(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """dx, dy, dist [M, U, U] with dx[m, i, j] = x_j - x_i (for scripts and tests)."""
-        x, y = self.x, self.y
+        x, y = np.ascontiguousarray(self.x), np.ascontiguousarray(self.y)
         dx = x[:, None, :] - x[:, :, None]
         dy = y[:, None, :] - y[:, :, None]
         return dx, dy, np.sqrt(dx * dx + dy * dy)
