@@ -147,25 +147,29 @@ def _closest_friend(m, u, lo, hi, uf, ui, f, alive, dist, hurt_only, reach):
 
 @njit(cache=True)
 def _attack_move(m, u, N, par, uf, ui, can_hit, g, alive, dist, tgt, mode):
-    """SC2 attack-move of an enemy: closest hittable agent within acquire range (fighters
-    first), else on to the agents' spawn, else (arrived) the closest hittable agent. A unit
-    too close to a living agent baneling backs away from it instead (splash avoidance)."""
-    if ui[u, KIND] != BANE and par[P_DODGE] >= 0.0:
-        for a in range(N):
-            near_bane = alive[m, a] and ui[a, KIND] == BANE and can_hit[a, u]
-            if near_bane and dist[u, a] - uf[u, RADIUS] <= uf[a, SPLASH_R] + par[P_DODGE]:
-                tgt[u] = a
-                mode[u] = M_FLEE
-                return
+    """SC2 attack-move of an enemy: the closest hittable agent within acquire range (fighters
+    first; a non-baneling prefers anything to a baneling), else on to the agents' spawn, else
+    (arrived) the closest hittable agent. A non-baneling within a living agent baneling's
+    burst radius (+ par[P_DODGE]) backs away from it unless it is that baneling's closest foe:
+    one unit may take it on, the others keep out of the burst (splash avoidance)."""
     best, best_key, near, near_d = -1, 1e18, -1, 1e18
+    dodge = ui[u, KIND] != BANE and par[P_DODGE] >= 0.0
     for a in range(N):
         if not alive[m, a] or not can_hit[u, a]:
             continue
         e = dist[u, a] - uf[u, RADIUS] - uf[a, RADIUS]
+        bane = ui[a, KIND] == BANE
+        close = dist[u, a] - uf[u, RADIUS] <= uf[a, SPLASH_R] + par[P_DODGE]
+        if dodge and bane and close and not _closest_foe(m, a, u, N, uf, can_hit, alive, dist):
+            tgt[u] = a
+            mode[u] = M_FLEE
+            return
         if e < near_d:
             near, near_d = a, e
         if e <= par[P_ACQUIRE]:
             key = e if ui[a, THREAT] == 1 else e + 1e6
+            if dodge and bane:
+                key += 1e3
             if key < best_key:
                 best, best_key = a, key
     if best < 0 and g[m, ARRIVED, u] == 1:
@@ -175,6 +179,16 @@ def _attack_move(m, u, N, par, uf, ui, can_hit, g, alive, dist, tgt, mode):
         mode[u] = M_CHASE
     else:
         mode[u] = M_HOLD if g[m, ARRIVED, u] == 1 else M_WAY
+
+
+@njit(cache=True)
+def _closest_foe(m, a, u, N, uf, can_hit, alive, dist):
+    """Whether enemy u is the closest (edge to edge) living enemy that can hit agent a."""
+    d_u = dist[a, u] - uf[u, RADIUS]
+    for v in range(N, alive.shape[1]):
+        if v != u and alive[m, v] and can_hit[v, a] and dist[a, v] - uf[v, RADIUS] < d_u:
+            return False
+    return True
 
 
 @njit(cache=True)

@@ -201,14 +201,17 @@ def test_baneling_splash_spares_its_own_side():
     assert b.hp[0, 1 - bane] == pytest.approx(35.0)
 
 
-def test_enemy_backs_away_from_a_living_agent_baneling():
+def test_enemy_keeps_out_of_a_living_agent_banelings_burst():
+    # Both zerglings are within the burst radius (2.2) + 0.5 of the baneling: the closer one
+    # may take it on, the other backs away.
     env = battle_env(
         [{"type": "baneling", "count": 1, "positions": [[10, 10]]}],
-        [{"type": "zergling", "count": 1, "positions": [[12, 10]]}],
+        [{"type": "zergling", "count": 2, "positions": [[11.5, 10], [12.2, 10.5]]}],
     )
     b = env.battle
     env.step([1])
-    assert b.x[0, 1] > 12.0 and b.alive[0, 0]
+    assert b.alive[0, 0]
+    assert b.x[0, 1] <= 11.5 and b.x[0, 2] > 12.2
 
 
 def test_ground_weapons_skip_air_units():
