@@ -103,14 +103,16 @@ POLICIES: dict[str, Policy] = {
 
 
 def evaluate(venv: SkirmishVecEnv, policy: Policy, episodes: int, seed: int = 0) -> dict:
-    """Play `episodes` episodes (in rounds of M) and return win rate and mean return."""
+    """Play `episodes` episodes (in rounds of M) and return win rate, timeout rate (episodes
+    cut by the time limit, which count as losses), mean return and mean length."""
     rng = np.random.default_rng(seed)
-    wins, returns, lengths = [], [], []
+    wins, timeouts, returns, lengths = [], [], [], []
     while len(wins) < episodes:
         venv.reset()
         active = np.ones(venv.num_envs, bool)
         ret = np.zeros(venv.num_envs)
         won = np.zeros(venv.num_envs, bool)
+        cut = np.zeros(venv.num_envs, bool)
         t = np.zeros(venv.num_envs, np.int64)
         while active.any():
             r, term, infos = venv.step(policy(venv, rng), active)
@@ -118,14 +120,16 @@ def evaluate(venv: SkirmishVecEnv, policy: Policy, episodes: int, seed: int = 0)
             t += active
             for k in np.flatnonzero(active & term):
                 won[k] = infos[k]["battle_won"]
+                cut[k] = infos[k]["episode_limit"]
             active &= ~term
         wins += won.tolist()
+        timeouts += cut.tolist()
         returns += ret.tolist()
         lengths += t.tolist()
-    wins, returns, lengths = wins[:episodes], returns[:episodes], lengths[:episodes]
     return {
         "episodes": episodes,
-        "win_rate": float(np.mean(wins)),
-        "mean_return": float(np.mean(returns)),
-        "mean_length": float(np.mean(lengths)),
+        "win_rate": float(np.mean(wins[:episodes])),
+        "timeout_rate": float(np.mean(timeouts[:episodes])),
+        "mean_return": float(np.mean(returns[:episodes])),
+        "mean_length": float(np.mean(lengths[:episodes])),
     }
