@@ -111,7 +111,7 @@ class SkirmishVecEnv:
     ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step."""
         M, N = self.num_envs, self.st.N
-        active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M)
+        active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M).copy()
         if (active & self.done).any():
             k = int(np.flatnonzero(active & self.done)[0])
             raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
