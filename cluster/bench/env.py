@@ -1,14 +1,19 @@
 """`credit bench env`: env-steps/s of a batched env under random valid actions, optionally
 side by side with JaxMARL's SMAX.
 
-    credit bench env --env skirmish/3m --num-envs 64 --steps 2000 [--vs-smax]
+    credit bench env --env skirmish/3m --num-envs 64 --steps 2000 [--repeats 3] [--vs-smax]
         [--smax-python /tmp/smaxvenv/bin/python] [--out results/bench/x.json]
 
 Each timed step reads observations, state and available actions, samples a uniformly random
 available action per agent and steps every env; finished envs are reset in place (the
-rollout actor's loop). `--vs-smax` runs `cluster/bench/smax_runner.py` on the same map and
-number of envs (JIT compile excluded) with `--smax-python` (default: this Python, which then
-needs `jaxmarl`, the `smax` extra) and adds `smax_env_steps_per_s` and `ratio` (ours / SMAX).
+rollout actor's loop). The loop runs `--repeats` blocks of `--steps` steps after a short
+warm-up; `env_steps_per_s` is the best block (the least disturbed by other load on a shared
+machine), `env_steps_per_s_median` the median. `--vs-smax` runs `cluster/bench/smax_runner.py`
+(same map, number of envs, steps and repeats; JIT compile excluded; observations with
+SMAX's world state and available actions every step, like ours) with `--smax-python`
+(default: this Python, which then needs `jaxmarl`, the `smax` extra) and adds
+`smax_env_steps_per_s` (best block), `smax_env_steps_per_s_median`, `ratio` (best / best)
+and `ratio_median`.
 """
 
 from __future__ import annotations
@@ -30,7 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("env", help="env-steps/s under random valid actions (optionally vs SMAX)")
     p.add_argument("--env", default="skirmish/3m", help="registered env id")
     p.add_argument("--num-envs", type=int, default=64)
-    p.add_argument("--steps", type=int, default=1000, help="vector steps timed")
+    p.add_argument("--steps", type=int, default=1000, help="vector steps per timed block")
+    p.add_argument("--repeats", type=int, default=3, help="timed blocks (best and median kept)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--vs-smax", action="store_true", help="also time JaxMARL SMAX, same map")
     p.add_argument("--smax-python", default=sys.executable, help="python that has jaxmarl")
@@ -38,14 +44,37 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_env)
 
 
-def time_env(env_id: str, num_envs: int, steps: int, seed: int = 0) -> dict:
-    """Run `steps` vector steps of random valid actions; return throughput figures."""
+def time_env(env_id: str, num_envs: int, steps: int, seed: int = 0, repeats: int = 1) -> dict:
+    """Run `repeats` blocks of `steps` vector steps of random valid actions (after a short
+    warm-up that also compiles numba kernels); return throughput figures."""
     venv = make_vec_env(env_id, num_envs, seed=seed)
     rng = np.random.default_rng(seed)
     venv.reset()
-    active = np.ones(num_envs, bool)
+    _run(venv, rng, min(steps, 20))
+    blocks, episodes = [], 0
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        episodes += _run(venv, rng, steps)
+        blocks.append(time.perf_counter() - t0)
+    n = venv.info.n_agents
+    best, median = min(blocks), float(np.median(blocks))
+    return {
+        "env": env_id,
+        "num_envs": num_envs,
+        "steps": steps,
+        "repeats": len(blocks),
+        "block_seconds": blocks,
+        "episodes": episodes,
+        "env_steps_per_s": num_envs * steps / best,
+        "env_steps_per_s_median": num_envs * steps / median,
+        "agent_steps_per_s": num_envs * steps * n / best,
+    }
+
+
+def _run(venv, rng: np.random.Generator, steps: int) -> int:
+    """`steps` rollout-actor steps (views, random valid actions, step, reset finished)."""
+    active = np.ones(venv.num_envs, bool)
     episodes = 0
-    t0 = time.perf_counter()
     for _ in range(steps):
         venv.get_obs()
         venv.get_state()
@@ -55,17 +84,7 @@ def time_env(env_id: str, num_envs: int, steps: int, seed: int = 0) -> dict:
         if terminated.any():
             episodes += int(terminated.sum())
             _reset_done(venv, terminated)
-    dt = time.perf_counter() - t0
-    n = venv.info.n_agents
-    return {
-        "env": env_id,
-        "num_envs": num_envs,
-        "steps": steps,
-        "seconds": dt,
-        "episodes": episodes,
-        "env_steps_per_s": num_envs * steps / dt,
-        "agent_steps_per_s": num_envs * steps * n / dt,
-    }
+    return episodes
 
 
 def _reset_done(venv, done: np.ndarray) -> None:
@@ -77,10 +96,10 @@ def _reset_done(venv, done: np.ndarray) -> None:
         venv.reset()
 
 
-def time_smax(python: str, map_name: str, num_envs: int, steps: int) -> dict:
+def time_smax(python: str, map_name: str, num_envs: int, steps: int, repeats: int = 1) -> dict:
     runner = Path(__file__).with_name("smax_runner.py")
     cmd = [python, str(runner), "--map", map_name, "--num-envs", str(num_envs)]
-    cmd += ["--steps", str(steps)]
+    cmd += ["--steps", str(steps), "--repeats", str(repeats)]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"SMAX runner failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
@@ -88,11 +107,14 @@ def time_smax(python: str, map_name: str, num_envs: int, steps: int) -> dict:
 
 
 def cmd_env(args: argparse.Namespace) -> int:
-    figures = time_env(args.env, args.num_envs, args.steps, args.seed)
+    figures = time_env(args.env, args.num_envs, args.steps, args.seed, args.repeats)
     if args.vs_smax:
         map_name = args.env.split("/", 1)[1]
-        smax = time_smax(args.smax_python, map_name, args.num_envs, args.steps)
+        smax = time_smax(args.smax_python, map_name, args.num_envs, args.steps, args.repeats)
         figures.update(smax)
         figures["ratio"] = figures["env_steps_per_s"] / smax["smax_env_steps_per_s"]
+        figures["ratio_median"] = (
+            figures["env_steps_per_s_median"] / smax["smax_env_steps_per_s_median"]
+        )
     emit("env", figures, args.out)
     return 0

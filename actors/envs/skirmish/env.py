@@ -16,12 +16,12 @@ from typing import Any
 import numpy as np
 
 from actors.envs.base import EnvError, EnvInfo
-from actors.envs.skirmish.sim import ATTACK, IDLE, MOVE, Battle, Statics
+from actors.envs.skirmish.kernels import outcome, set_orders
+from actors.envs.skirmish.sim import Battle, Statics
 from actors.envs.skirmish.spec import MapSpec, SkirmishConfig
 from actors.envs.skirmish.views import Layout, avail_actions, global_state, observations
 
 log = logging.getLogger(__name__)
-_DIRS = np.array([[0, 0], [0, 0], [0, 1], [0, -1], [1, 0], [-1, 0]], np.float64)
 
 
 class SkirmishVecEnv:
@@ -67,6 +67,12 @@ class SkirmishVecEnv:
         self.max_reward = (
             enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
         )
+        cfg = self.cfg
+        scale = self.max_reward / cfg.reward_scale_rate if cfg.reward_scale else 0.0
+        self._rp = np.array(
+            [cfg.reward_death_value, cfg.reward_win, cfg.reward_defeat, scale,
+             float(cfg.reward_only_positive)]
+        )  # fmt: skip
         self.seed(seed)
         M, N = num_envs, self.st.N
         self.t = np.zeros(M, np.int64)
@@ -105,110 +111,61 @@ class SkirmishVecEnv:
     ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step."""
         M, N = self.num_envs, self.st.N
-        active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M)
+        active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M).copy()
         if (active & self.done).any():
             k = int(np.flatnonzero(active & self.done)[0])
             raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
-        acts = np.asarray(actions, np.int64).reshape(M, N)
-        self._check(acts, active)
-        b = self.battle
-        enemy_before = (b.hp[:, N:] + b.sh[:, N:]).sum(1)
-        ally_before = (b.hp[:, :N] + b.sh[:, :N]).sum(1)
-        dead_e0, dead_a0 = (~b.alive[:, N:]).sum(1), (~b.alive[:, :N]).sum(1)
-        self._set_orders(acts, active)
-        for _ in range(self.cfg.substeps):
-            b.substep(active)
-        self.t += active
-        self._cache = {}
-        return self._outcome(active, enemy_before, ally_before, dead_e0, dead_a0)
-
-    def _check(self, acts: np.ndarray, active: np.ndarray) -> None:
+        acts = np.ascontiguousarray(actions, np.int64).reshape(M, N)
         avail = self.get_avail_actions()
-        A = self.lay.n_actions
-        inside = (acts >= 0) & (acts < A)
-        ok = inside & (np.take_along_axis(avail, np.clip(acts, 0, A - 1)[..., None], 2)[..., 0] > 0)
-        bad = ~ok & active[:, None]
-        if bad.any():
-            k, i = (int(v) for v in np.argwhere(bad)[0])
+        bad = set_orders(acts, active, avail, N, self.lay.agent_healer, self.battle.g,
+                         self.last_action)  # fmt: skip
+        if bad >= 0:
+            k, i = divmod(int(bad), N)
             valid = np.flatnonzero(avail[k, i]).tolist()
             where = f"env {k}: " if self.num_envs > 1 else ""
             raise EnvError(
                 f"{where}agent {i} cannot take action {int(acts[k, i])} now; available: {valid}"
             )
+        before = self.battle.step(active)
+        self.t += active
+        self._cache = {}
+        return self._outcome(active, before)
 
-    def _set_orders(self, acts: np.ndarray, active: np.ndarray) -> None:
-        b, N = self.battle, self.st.N
-        act = active[:, None]
-        order = np.where(acts >= 6, ATTACK, np.where(acts >= 2, MOVE, IDLE))
-        healer = self.lay.agent_healer[None]
-        tgt = np.where(acts >= 6, np.where(healer, acts - 6, N + acts - 6), -1)
-        b.order[:, :N] = np.where(act, order, b.order[:, :N])
-        b.order_tgt[:, :N] = np.where(act, tgt, b.order_tgt[:, :N])
-        b.move_dir[:, :N] = np.where(act[..., None], _DIRS[np.minimum(acts, 5)], b.move_dir[:, :N])
-        onehot = np.eye(self.lay.n_actions, dtype=np.float32)[acts]
-        self.last_action = np.where(act[..., None], onehot, self.last_action)
-
-    def _outcome(self, active, enemy_before, ally_before, dead_e0, dead_a0):
-        b, st, cfg, N = self.battle, self.st, self.cfg, self.st.N
-        kills = (~b.alive[:, N:]).sum(1) - dead_e0
-        d_enemy = enemy_before - (b.hp[:, N:] + b.sh[:, N:]).sum(1)
-        reward = d_enemy + cfg.reward_death_value * kills
-        if cfg.reward_only_positive:
-            reward = np.abs(reward)
-        else:
-            losses = (~b.alive[:, :N]).sum(1) - dead_a0
-            d_ally = ally_before - (b.hp[:, :N] + b.sh[:, :N]).sum(1)
-            reward = reward - 0.5 * (d_ally + cfg.reward_death_value * losses)
-        fighter = ~np.isin(np.arange(st.U), st.healers)
-        a_fight = (b.alive[:, :N] & fighter[:N]).any(1)
-        e_fight = (b.alive[:, N:] & fighter[N:]).any(1)
-        lost = ~a_fight
-        won = ~lost & ~e_fight
-        ended = (lost | won) & active
-        won &= active
-        reward = (
-            reward
-            + np.where(won, cfg.reward_win, 0.0)
-            + np.where(ended & ~won, cfg.reward_defeat, 0.0)
-        )
-        timeout = active & ~ended & (self.t >= self.spec.episode_limit)
-        terminated = ended | timeout | ~active
-        if cfg.reward_scale:
-            reward = reward / (self.max_reward / cfg.reward_scale_rate)
-        reward = np.where(active, reward, 0.0).astype(np.float32)
-        self.done |= terminated & active
-        self.stats["battles_game"] += int((ended | timeout).sum())
+    def _outcome(self, active: np.ndarray, before: np.ndarray):
+        b, M, N = self.battle, self.num_envs, self.st.N
+        reward = np.empty(M)
+        term, won, timeout = np.empty(M, bool), np.empty(M, bool), np.empty(M, bool)
+        outcome(active, self.t, N, self.spec.episode_limit, self._rp, self.st.ui, b.f, b.alive,
+                before, reward, term, won, timeout)  # fmt: skip
+        finished = term & active
+        self.done |= finished
+        self.stats["battles_game"] += int(finished.sum())
         self.stats["battles_won"] += int(won.sum())
         self.stats["timeouts"] += int(timeout.sum())
-        infos: list[dict[str, Any]] = []
-        for k in range(self.num_envs):
-            if not active[k]:
-                infos.append({})
-                continue
-            info = {"battle_won": bool(won[k]), "episode_limit": bool(timeout[k])}
-            if terminated[k]:
-                info["dead_allies"] = int((~b.alive[k, :N]).sum())
-                info["dead_enemies"] = int((~b.alive[k, N:]).sum())
-            infos.append(info)
-        return reward, terminated, infos
+        flags = zip(won.tolist(), timeout.tolist(), active.tolist(), strict=True)
+        infos = [{"battle_won": w, "episode_limit": to} if a else {} for w, to, a in flags]
+        for k in np.flatnonzero(finished).tolist():
+            infos[k]["dead_allies"] = int(N - b.alive[k, :N].sum())
+            infos[k]["dead_enemies"] = int(self.st.E - b.alive[k, N:].sum())
+        return reward.astype(np.float32), term, infos
 
     # -- views (cached until the next step or reset) ----------------------------------------
-    def _views(self) -> dict[str, Any]:
-        if "obs" not in self._cache:
-            dx, dy, dist = self.battle.pairwise()
-            avail = avail_actions(self.battle, self.lay, self.cfg, dist)
-            self._cache["avail"] = avail
-            self._cache["obs"] = observations(self.battle, self.lay, self.cfg, avail, dx, dy, dist)
-        return self._cache
+    def pairwise(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """dx, dy, dist [M, U, U] of the current positions (for scripts), cached per step."""
+        if "pairwise" not in self._cache:
+            self._cache["pairwise"] = self.battle.pairwise()
+        return self._cache["pairwise"]
 
     def get_avail_actions(self) -> np.ndarray:
         if "avail" not in self._cache:
-            _, _, dist = self.battle.pairwise()
-            self._cache["avail"] = avail_actions(self.battle, self.lay, self.cfg, dist)
+            self._cache["avail"] = avail_actions(self.battle, self.lay, self.cfg)
         return self._cache["avail"]
 
     def get_obs(self) -> np.ndarray:
-        return self._views()["obs"]
+        if "obs" not in self._cache:
+            avail = self.get_avail_actions()
+            self._cache["obs"] = observations(self.battle, self.lay, self.cfg, avail)
+        return self._cache["obs"]
 
     def get_state(self) -> np.ndarray:
         if "state" not in self._cache:

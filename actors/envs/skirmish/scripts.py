@@ -27,7 +27,7 @@ def _toward(venv: SkirmishVecEnv, sign: float) -> np.ndarray:
     """Move action [M, N] toward (sign=+1) or away from (-1) the nearest living enemy,
     along the larger axis; falls back to stop when that move is unavailable."""
     b, N = venv.battle, venv.st.N
-    dx, dy, dist = b.pairwise()
+    dx, dy, dist = venv.pairwise()
     d = np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf)
     j = d.argmin(-1)
     tx = np.take_along_axis(dx[:, :N, N:], j[..., None], 2)[..., 0] * sign
@@ -51,32 +51,38 @@ def _attack_or(venv: SkirmishVecEnv, score: np.ndarray, fallback: np.ndarray) ->
 
 
 def _advance(venv: SkirmishVecEnv) -> np.ndarray:
-    """Move toward the nearest enemy until one is in sight range, then hold (stop), so the
-    enemy walks into range rather than getting the first volley."""
-    b, N = venv.battle, venv.st.N
-    _, _, dist = b.pairwise()
-    seen = (np.where(b.alive[:, None, N:], dist[:, :N, N:], np.inf) < venv.cfg.sight_range).any(-1)
-    return np.where(seen, 1, _toward(venv, 1.0))
+    """Move toward the nearest enemy; but before contact (no enemy within shoot range of any
+    agent) hold once an enemy is in sight, so the enemy walks into range rather than
+    getting the first volley."""
+    b, N, cfg = venv.battle, venv.st.N, venv.cfg
+    _, _, dist = venv.pairwise()
+    d = np.where(b.alive[:, None, N:] & b.alive[:, :N, None], dist[:, :N, N:], np.inf)
+    seen = (d < cfg.sight_range).any(-1)
+    contact = (d <= cfg.shoot_range).any((1, 2))
+    return np.where(seen & ~contact[:, None], 1, _toward(venv, 1.0))
 
 
 def focus_fire_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
-    """All attack the weakest enemy (health + shield) in range, else advance."""
+    """All attack the weakest enemy (health + shield) in range, else advance; ties go to the
+    enemy closest to the team as a whole, so that the agents pick the same one."""
     b, N = venv.battle, venv.st.N
-    weak = (b.hp[:, N:] + b.sh[:, N:])[:, None, :]
-    score = np.broadcast_to(weak + 1e-6 * np.arange(venv.st.E), (b.M, N, venv.st.E))
+    _, _, dist = venv.pairwise()
+    d = np.where(b.alive[:, :N, None], dist[:, :N, N:], 0.0).sum(1)  # [M, E]
+    weak = (b.hp[:, N:] + b.sh[:, N:]) + 1e-3 * d / max(venv.cfg.sight_range * N, 1.0)
+    score = np.broadcast_to(weak[:, None, :], (b.M, N, venv.st.E))
     return _attack_or(venv, score, _advance(venv))
 
 
 def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
     """Everyone attacks the nearest enemy in range, else advances."""
-    b, N = venv.battle, venv.st.N
-    _, _, dist = b.pairwise()
+    N = venv.st.N
+    _, _, dist = venv.pairwise()
     return _attack_or(venv, dist[:, :N, N:], _advance(venv))
 
 
 def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
-    """Banelings charge the nearest enemy; zerglings step back while any baneling lives,
-    then attack the nearest enemy."""
+    """Banelings charge the nearest enemy; zerglings step back (away from the nearest enemy)
+    while any baneling, ours or the enemy's, lives, then attack the nearest enemy."""
     b, st, N = venv.battle, venv.st, venv.st.N
     nearest = nearest_policy(venv, rng)
     is_bane = st.kind[:N] == KINDS.index("baneling")
@@ -97,14 +103,16 @@ POLICIES: dict[str, Policy] = {
 
 
 def evaluate(venv: SkirmishVecEnv, policy: Policy, episodes: int, seed: int = 0) -> dict:
-    """Play `episodes` episodes (in rounds of M) and return win rate and mean return."""
+    """Play `episodes` episodes (in rounds of M) and return win rate, timeout rate (episodes
+    cut by the time limit, which count as losses), mean return and mean length."""
     rng = np.random.default_rng(seed)
-    wins, returns, lengths = [], [], []
+    wins, timeouts, returns, lengths = [], [], [], []
     while len(wins) < episodes:
         venv.reset()
         active = np.ones(venv.num_envs, bool)
         ret = np.zeros(venv.num_envs)
         won = np.zeros(venv.num_envs, bool)
+        cut = np.zeros(venv.num_envs, bool)
         t = np.zeros(venv.num_envs, np.int64)
         while active.any():
             r, term, infos = venv.step(policy(venv, rng), active)
@@ -112,14 +120,16 @@ def evaluate(venv: SkirmishVecEnv, policy: Policy, episodes: int, seed: int = 0)
             t += active
             for k in np.flatnonzero(active & term):
                 won[k] = infos[k]["battle_won"]
+                cut[k] = infos[k]["episode_limit"]
             active &= ~term
         wins += won.tolist()
+        timeouts += cut.tolist()
         returns += ret.tolist()
         lengths += t.tolist()
-    wins, returns, lengths = wins[:episodes], returns[:episodes], lengths[:episodes]
     return {
         "episodes": episodes,
-        "win_rate": float(np.mean(wins)),
-        "mean_return": float(np.mean(returns)),
-        "mean_length": float(np.mean(lengths)),
+        "win_rate": float(np.mean(wins[:episodes])),
+        "timeout_rate": float(np.mean(timeouts[:episodes])),
+        "mean_return": float(np.mean(returns[:episodes])),
+        "mean_length": float(np.mean(lengths[:episodes])),
     }

@@ -28,11 +28,13 @@ MAP_FIELDS = {
     "map_size": "[width, height] of the playable area (default [32, 32])",
     "type_order": "{allies: [...], enemies: [...]}: unit-type one-hot order per side",
     "unit_type_bits": "length of the type one-hot (default: number of types if > 1, else 0)",
+    "attack_point": "[x, y] the enemy attack-moves to (default: the agents' spawn centre)",
+    "formation": "'line' (default): groups in lines abreast facing along x; 'blob': SC2's spawn",
 }
 GROUP_FIELDS = {
     "type": "unit type name",
     "count": "number of units (int >= 0)",
-    "at": "[x, y] front centre of the group (laid out in a grid behind it)",
+    "at": "[x, y] spawn point (see the map's 'formation')",
     "positions": "explicit [[x, y], ...], one per unit (instead of 'at')",
 }
 
@@ -55,6 +57,7 @@ class UnitType:
     attributes: tuple[str, ...]
     kind: str
     smac_max_cooldown: float
+    hits_air: bool = False
     energy_max: float = 0.0
     energy_start: float = 0.0
     energy_regen_s: float = 0.0
@@ -104,6 +107,7 @@ class MapSpec:
         map_size: (width, height) of the playable area.
         ally_types / enemy_types: unit-type one-hot order of each side.
         unit_type_bits: length of the one-hot (0 when the map has a single type).
+        attack_point: where the scripted enemy attack-moves to (None: the agents' centre).
     """
 
     name: str
@@ -114,6 +118,7 @@ class MapSpec:
     ally_types: tuple[str, ...]
     enemy_types: tuple[str, ...]
     unit_type_bits: int
+    attack_point: tuple[float, float] | None = None
 
     @property
     def n_agents(self) -> int:
@@ -124,8 +129,8 @@ class MapSpec:
         return sum(g.count for g in self.enemies)
 
 
-def _layout(at: tuple[float, float], count: int, radius: float, facing: float) -> list:
-    """Grid of `count` units: columns of up to 8 along y, stacked away from the enemy."""
+def _line(at: tuple[float, float], count: int, radius: float, facing: float) -> list:
+    """Line abreast: columns of up to 8 along y, further columns stacked away from the enemy."""
     gap = 2 * radius + 0.15
     per_col = min(count, 8)
     out = []
@@ -136,7 +141,38 @@ def _layout(at: tuple[float, float], count: int, radius: float, facing: float) -
     return out
 
 
-def _parse_group(g: Any, where: str, facing: float) -> UnitGroup:
+def _ring_points(step: float = 0.05, max_r: float = 12.0) -> np.ndarray:
+    """Candidate offsets [K, 2] ordered by distance from the origin (then by angle)."""
+    pts = [(0.0, 0.0)]
+    for k in range(1, int(max_r / step) + 1):
+        r = k * step
+        n = max(6, int(2 * math.pi * r / step))
+        a = np.arange(n) * (2 * math.pi / n)
+        pts += list(zip(r * np.cos(a), r * np.sin(a), strict=True))
+    return np.array(pts)
+
+
+_RING = _ring_points()
+
+
+def _place(at: tuple[float, float], count: int, radius: float, air: bool, placed: list) -> list:
+    """Spawn `count` units around `at` the way SC2 creates units at a point: each on the
+    free spot closest to it (ground units do not overlap ground units already placed, air
+    units not air ones). `placed` holds (x, y, radius, air) of the side so far; extended."""
+    out = []
+    for _ in range(count):
+        cand = np.asarray(at) + _RING
+        ok = np.ones(len(cand), bool)
+        for x, y, r, a in placed:
+            if a == air:
+                ok &= np.hypot(cand[:, 0] - x, cand[:, 1] - y) >= r + radius + 0.02
+        x, y = cand[int(np.argmax(ok))]
+        placed.append((float(x), float(y), radius, air))
+        out.append((float(x), float(y)))
+    return out
+
+
+def _parse_group(g: Any, where: str, facing: float, blob: bool, placed: list) -> UnitGroup:
     if not isinstance(g, dict):
         raise EnvError(
             f"{where}: a unit group must be a mapping with fields {sorted(GROUP_FIELDS)}"
@@ -157,12 +193,18 @@ def _parse_group(g: Any, where: str, facing: float) -> UnitGroup:
         at = g["at"]
         if not (isinstance(at, list | tuple) and len(at) == 2):
             raise EnvError(f"{where}.at: must be [x, y], got {at!r}")
-        pos = _layout((float(at[0]), float(at[1])), count, types[name].radius, facing)
+        t, xy = types[name], (float(at[0]), float(at[1]))
+        if blob:
+            pos = _place(xy, count, t.radius, "air" in t.attributes, placed)
+        else:
+            pos = _line(xy, count, t.radius, facing)
     else:
         pos = g["positions"]
         ok = isinstance(pos, list) and all(isinstance(p, list | tuple) and len(p) == 2 for p in pos)
         if not ok or len(pos) != count:
             raise EnvError(f"{where}.positions: must be {count} [x, y] pairs, got {pos!r}")
+        t = types[name]
+        placed += [(float(x), float(y), t.radius, "air" in t.attributes) for x, y in pos]
     return UnitGroup(name, count, tuple((float(x), float(y)) for x, y in pos))
 
 
@@ -180,12 +222,17 @@ def parse_map(name: str, raw: Any, source: str) -> MapSpec:
     if not (isinstance(size, list | tuple) and len(size) == 2 and min(size) > 0):
         raise EnvError(f"{source}: field 'map_size' must be [width, height] > 0, got {size!r}")
     sides = {}
+    formation = raw.get("formation", "line")
+    if formation not in ("line", "blob"):
+        raise EnvError(f"{source}: field 'formation' must be 'line' or 'blob', got {formation!r}")
     for side, facing in (("allies", 1.0), ("enemies", -1.0)):
+        placed: list = []
         groups = raw.get(side)
         if not isinstance(groups, list) or not groups:
             raise EnvError(f"{source}: field {side!r} must be a non-empty list of unit groups")
         sides[side] = tuple(
-            _parse_group(g, f"{source}: field '{side}[{i}]'", facing) for i, g in enumerate(groups)
+            _parse_group(g, f"{source}: field '{side}[{i}]'", facing, formation == "blob", placed)
+            for i, g in enumerate(groups)
         )
         if sum(g.count for g in sides[side]) == 0:
             raise EnvError(f"{source}: field {side!r} has no units")
@@ -203,6 +250,14 @@ def parse_map(name: str, raw: Any, source: str) -> MapSpec:
     if not isinstance(bits, int) or bits < need:
         raise EnvError(f"{source}: field 'unit_type_bits' must be an int >= {need}, got {bits!r}")
     w, h = float(size[0]), float(size[1])
+    point = raw.get("attack_point")
+    if point is not None:
+        ok = isinstance(point, list | tuple) and len(point) == 2
+        if not ok or not (0 <= point[0] < w and 0 <= point[1] < h):
+            raise EnvError(
+                f"{source}: field 'attack_point' must be [x, y] on the map, got {point!r}"
+            )
+        point = (float(point[0]), float(point[1]))
     for side in ("allies", "enemies"):
         for g in sides[side]:
             for x, y in g.positions:
@@ -217,6 +272,7 @@ def parse_map(name: str, raw: Any, source: str) -> MapSpec:
         ally_types=tuple(order["allies"]),
         enemy_types=tuple(order["enemies"]),
         unit_type_bits=bits,
+        attack_point=point,
     )
 
 
@@ -270,6 +326,11 @@ class SkirmishConfig:
         start_jitter: uniform shift (cells) of each side's whole formation at reset.
         unit_jitter: uniform per-unit start noise (cells) within the formation.
         shield_regen_delay_s / shield_regen_per_s: protoss shields regenerate after no damage.
+        acquire_range: how far (edge to edge) a scripted enemy on attack-move looks for an
+            agent to attack; farther agents are ignored until it reaches the agents' spawn.
+        bane_dodge: a scripted enemy ground unit that comes within a living agent baneling's
+            burst radius plus this margin backs away from it (SC2's AI avoids baneling
+            splash; see README.md, "Enemy AI"); negative: no avoidance.
     """
 
     move_amount: float = 2.0
@@ -288,6 +349,8 @@ class SkirmishConfig:
     unit_jitter: float = 0.05
     shield_regen_delay_s: float = 10.0
     shield_regen_per_s: float = 2.0
+    acquire_range: float = 9.0
+    bane_dodge: float = 0.5
 
     def validate(self) -> None:
         if self.step_mul < 1 or self.substeps < 1 or self.step_mul % self.substeps:
@@ -300,6 +363,8 @@ class SkirmishConfig:
             or min(self.start_jitter, self.unit_jitter) < 0
         ):
             raise EnvError("move_amount and reward_scale_rate must be > 0, start_jitter >= 0")
+        if self.acquire_range < 0:
+            raise EnvError("acquire_range must be >= 0")
         if not math.isfinite(self.reward_win) or self.reward_defeat > 0:
             raise EnvError("reward_win must be finite and reward_defeat <= 0")
 

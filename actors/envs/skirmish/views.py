@@ -12,12 +12,18 @@ last actions in the state):
 * state [M, state_dim]: per agent [health, cooldown (healer: energy), x, y, (shield), type],
   per enemy [health, x, y, (shield), type] (positions relative to the map centre over the map
   size), then every agent's last action one-hot.
+
+Each tensor is one numba kernel over all M battles writing into a fresh array.
 """
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
+import numpy as np
+from numba import njit
+
+from actors.envs.skirmish.kernels import CD, EN, HP, SH, X, Y
 from actors.envs.skirmish.sim import Battle, Statics
 from actors.envs.skirmish.spec import MapSpec, SkirmishConfig
 
@@ -40,114 +46,154 @@ class Layout:
         self.nf_en_state = 3 + self.sh_enemy + self.bits
         last = N * self.n_actions if cfg.state_last_action else 0
         self.state_dim = N * self.nf_al_state + E * self.nf_en_state + last
-        self.onehot = np.zeros((st.U, self.bits), np.float32)
+        self.onehot = np.zeros((st.U, self.bits), np.float64)
         if self.bits:
             for u, name in enumerate(st.names):
                 order = spec.ally_types if u < N else spec.enemy_types
                 self.onehot[u, order.index(name)] = 1.0
-        self.others = np.array([[j for j in range(N) if j != i] for i in range(N)], np.int64)
-        self.others = self.others.reshape(N, N - 1)
-        self.rows = np.arange(N)[:, None]
         self.agent_healer = np.isin(np.arange(N), st.healers)
         self.sh_norm = np.where(st.sh_max > 0, 1.0 / np.maximum(st.sh_max, 1e-9), 0.0)
         self.cd_norm = 1.0 / st.smac_cd
+        # Per-unit feature constants for the kernels: 1 / max health, shield norm (0: none).
+        self.inv_hp = 1.0 / st.hp_max
+        self.sizes = np.array([self.nf_en, self.nf_al, self.sh_enemy, self.sh_ally, self.bits])
 
 
-def avail_actions(b: Battle, lay: Layout, cfg: SkirmishConfig, dist: np.ndarray) -> np.ndarray:
+def avail_actions(b: Battle, lay: Layout, cfg: SkirmishConfig) -> np.ndarray:
     """Available actions [M, N, 6 + E] (uint8) of the current state."""
-    st, N, M = b.st, lay.N, b.M
-    alive = b.alive[:, :N]
-    avail = np.zeros((M, N, lay.n_actions), np.uint8)
-    avail[:, :, 0] = ~alive
-    avail[:, :, 1] = alive
-    half = cfg.move_amount / 2
-    x, y = b.x[:, :N], b.y[:, :N]
-    # SMAC truncates the probe point to a cell and checks it lies on the map.
-    avail[:, :, 2] = alive & (np.trunc(y + half) < st.map_h)
-    avail[:, :, 3] = alive & (np.trunc(y - half) >= 0)
-    avail[:, :, 4] = alive & (np.trunc(x + half) < st.map_w)
-    avail[:, :, 5] = alive & (np.trunc(x - half) >= 0)
-    reach = dist[:, :N, N:] <= cfg.shoot_range
-    avail[:, :, 6:] = alive[:, :, None] & b.alive[:, None, N:] & reach
-    if lay.agent_healer.any():
-        h = np.flatnonzero(lay.agent_healer)
-        heal = dist[:, h, :N] <= cfg.shoot_range
-        heal &= b.alive[:, None, :N] & st.healable[None, None, :N] & alive[:, h, None]
-        avail[:, h, 6:] = 0
-        k = min(N, lay.E)  # SMAC has 6 + n_enemies actions: a healer reaches allies < E
-        avail[:, h, 6 : 6 + k] = heal[..., :k]
-    return avail
+    out = np.zeros((b.M, lay.N, lay.n_actions), np.uint8)
+    st = b.st
+    _avail_kernel(
+        lay.N, lay.E, cfg.move_amount / 2, cfg.shoot_range, st.map_w, st.map_h,
+        lay.agent_healer, st.healable, b.f, b.alive, out,
+    )  # fmt: skip
+    return out
 
 
-def observations(
-    b: Battle, lay: Layout, cfg: SkirmishConfig, avail: np.ndarray, dx, dy, dist
-) -> np.ndarray:
+def observations(b: Battle, lay: Layout, cfg: SkirmishConfig, avail: np.ndarray) -> np.ndarray:
     """Observations [M, N, obs_dim] (float32); see the module docstring for the layout."""
-    st, N, E, M = b.st, lay.N, lay.E, b.M
-    inv = 1.0 / cfg.sight_range
-    alive = b.alive[:, :N]
-    health = b.hp / st.hp_max
-    out = np.zeros((M, N, lay.obs_dim), np.float32)
-    out[:, :, :4] = avail[:, :, 2:6]
-    # Enemies: one [M, N, E, nf_en] view into `out`, filled feature by feature.
-    en = out[:, :, 4 : 4 + E * lay.nf_en].reshape(M, N, E, lay.nf_en)
-    de = dist[:, :N, N:]
-    en[..., 0] = avail[:, :, 6 : 6 + E]
-    en[..., 1] = de * inv
-    en[..., 2] = dx[:, :N, N:] * inv
-    en[..., 3] = dy[:, :N, N:] * inv
-    en[..., 4] = health[:, None, N:]
-    if lay.sh_enemy:
-        en[..., 5] = (b.sh[:, N:] * lay.sh_norm[N:])[:, None, :]
-    if lay.bits:
-        en[..., 5 + lay.sh_enemy :] = lay.onehot[N:]
-    en *= ((de < cfg.sight_range) & b.alive[:, None, N:] & alive[:, :, None])[..., None]
-    if N > 1:
-        a0 = 4 + E * lay.nf_en
-        al = out[:, :, a0 : a0 + (N - 1) * lay.nf_al].reshape(M, N, N - 1, lay.nf_al)
-        rows, o = lay.rows, lay.others
-        da = dist[:, rows, o]
-        al[..., 0] = 1.0
-        al[..., 1] = da * inv
-        al[..., 2] = dx[:, rows, o] * inv
-        al[..., 3] = dy[:, rows, o] * inv
-        al[..., 4] = health[:, o]
-        if lay.sh_ally:
-            al[..., 5] = b.sh[:, o] * lay.sh_norm[o]
-        if lay.bits:
-            al[..., 5 + lay.sh_ally :] = lay.onehot[o]
-        al *= ((da < cfg.sight_range) & b.alive[:, o] & alive[:, :, None])[..., None]
-    own = out[:, :, lay.obs_dim - lay.nf_own :]
-    own[..., 0] = health[:, :N]
-    if lay.sh_ally:
-        own[..., 1] = b.sh[:, :N] * lay.sh_norm[:N]
-    if lay.bits:
-        own[..., 1 + lay.sh_ally :] = lay.onehot[:N]
-    out *= alive[:, :, None]
+    out = np.zeros((b.M, lay.N, lay.obs_dim), np.float32)
+    _obs_kernel(
+        lay.N, lay.E, cfg.sight_range, lay.sizes, lay.onehot, lay.inv_hp, lay.sh_norm,
+        b.f, b.alive, avail, out,
+    )  # fmt: skip
     return out
 
 
 def global_state(b: Battle, lay: Layout, last_action: np.ndarray | None) -> np.ndarray:
     """Global state [M, state_dim] (float32); `last_action` [M, N, A] one-hot or None."""
-    st, N, M = b.st, lay.N, b.M
-    cx, cy = st.map_w / 2, st.map_h / 2
-    health = b.hp / st.hp_max
-    rx, ry = (b.x - cx) / st.map_w, (b.y - cy) / st.map_h
-    cool = np.where(lay.agent_healer, b.energy[:, :N], b.cd[:, :N]) * lay.cd_norm[:N]
-    al = [health[:, :N], cool, rx[:, :N], ry[:, :N]]
-    if lay.sh_ally:
-        al.append(b.sh[:, :N] * lay.sh_norm[:N])
-    al_f = np.stack(al, -1)
-    en = [health[:, N:], rx[:, N:], ry[:, N:]]
-    if lay.sh_enemy:
-        en.append(b.sh[:, N:] * lay.sh_norm[N:])
-    en_f = np.stack(en, -1)
-    if lay.bits:
-        al_f = np.concatenate([al_f, np.broadcast_to(lay.onehot[:N], (M, N, lay.bits))], -1)
-        en_f = np.concatenate([en_f, np.broadcast_to(lay.onehot[N:], (M, lay.E, lay.bits))], -1)
-    al_f = al_f * b.alive[:, :N, None]
-    en_f = en_f * b.alive[:, N:, None]
-    parts = [al_f.reshape(M, -1), en_f.reshape(M, -1)]
+    out = np.zeros((b.M, lay.state_dim), np.float32)
+    st = b.st
+    cool_norm = np.where(lay.agent_healer, -lay.cd_norm[: lay.N], lay.cd_norm[: lay.N])
+    _state_kernel(
+        lay.N, lay.E, st.map_w, st.map_h, lay.sizes, lay.onehot, lay.inv_hp, lay.sh_norm,
+        cool_norm, b.f, b.alive, out,
+    )  # fmt: skip
     if last_action is not None:
-        parts.append(last_action.reshape(M, -1))
-    return np.concatenate(parts, -1).astype(np.float32)
+        out[:, lay.state_dim - last_action[0].size :] = last_action.reshape(b.M, -1)
+    return out
+
+
+@njit(cache=True)
+def _avail_kernel(N, E, half, shoot, map_w, map_h, agent_healer, healable, f, alive, out):
+    M = alive.shape[0]
+    k = min(N, E)  # SMAC has 6 + n_enemies actions: a healer reaches allies < E
+    for m in range(M):
+        for i in range(N):
+            if not alive[m, i]:
+                out[m, i, 0] = 1
+                continue
+            x, y = f[m, X, i], f[m, Y, i]
+            out[m, i, 1] = 1
+            # SMAC truncates the probe point to a cell and checks it lies on the map.
+            out[m, i, 2] = math.trunc(y + half) < map_h
+            out[m, i, 3] = math.trunc(y - half) >= 0
+            out[m, i, 4] = math.trunc(x + half) < map_w
+            out[m, i, 5] = math.trunc(x - half) >= 0
+            lo, hi = (0, k) if agent_healer[i] else (N, N + E)
+            for u in range(lo, hi):
+                if not alive[m, u] or (agent_healer[i] and not healable[u]):
+                    continue
+                dx, dy = f[m, X, u] - x, f[m, Y, u] - y
+                if math.sqrt(dx * dx + dy * dy) <= shoot:
+                    out[m, i, 6 + u - lo] = 1
+
+
+@njit(cache=True)
+def _unit_feats(out, o, m, u, f, inv_hp, sh_norm, has_sh, onehot, bits):
+    """health, (shield), type one-hot of unit u at out[o:]; returns the next offset."""
+    out[o] = f[m, HP, u] * inv_hp[u]
+    o += 1
+    if has_sh:
+        out[o] = f[m, SH, u] * sh_norm[u]
+        o += 1
+    for k in range(bits):
+        out[o + k] = onehot[u, k]
+    return o + bits
+
+
+@njit(cache=True)
+def _other(o_, p, m, i, v, flag, inv, sight, f, alive, inv_hp, sh_norm, has_sh, onehot, bits):
+    """[flag, dist, dx, dy, health, (shield), type] of unit v seen by i at o_[p:], if seen."""
+    dx, dy = f[m, X, v] - f[m, X, i], f[m, Y, v] - f[m, Y, i]
+    d = math.sqrt(dx * dx + dy * dy)
+    if alive[m, v] and d < sight:
+        o_[p] = flag
+        o_[p + 1] = d * inv
+        o_[p + 2] = dx * inv
+        o_[p + 3] = dy * inv
+        _unit_feats(o_, p + 4, m, v, f, inv_hp, sh_norm, has_sh, onehot, bits)
+
+
+@njit(cache=True)
+def _obs_kernel(N, E, sight, sizes, onehot, inv_hp, sh_norm, f, alive, avail, out):
+    M = alive.shape[0]
+    nf_en, nf_al, sh_en, sh_al, bits = sizes[0], sizes[1], sizes[2], sizes[3], sizes[4]
+    inv = 1.0 / sight
+    a0 = 4 + E * nf_en
+    for m in range(M):
+        for i in range(N):
+            if not alive[m, i]:
+                continue
+            o_ = out[m, i]
+            for k in range(4):
+                o_[k] = avail[m, i, 2 + k]
+            for j in range(E):
+                flag = avail[m, i, 6 + j]
+                _other(o_, 4 + j * nf_en, m, i, N + j, flag, inv, sight, f, alive, inv_hp,
+                       sh_norm, sh_en, onehot, bits)  # fmt: skip
+            for k in range(N - 1):
+                v = k + (k >= i)
+                _other(o_, a0 + k * nf_al, m, i, v, 1.0, inv, sight, f, alive, inv_hp,
+                       sh_norm, sh_al, onehot, bits)  # fmt: skip
+            _unit_feats(o_, a0 + (N - 1) * nf_al, m, i, f, inv_hp, sh_norm, sh_al, onehot, bits)
+
+
+@njit(cache=True)
+def _state_kernel(N, E, map_w, map_h, sizes, onehot, inv_hp, sh_norm, cool_norm, f, alive, out):
+    M = alive.shape[0]
+    sh_en, sh_al, bits = sizes[2], sizes[3], sizes[4]
+    nf_al, nf_en = 4 + sh_al + bits, 3 + sh_en + bits
+    cx, cy = map_w / 2, map_h / 2
+    for m in range(M):
+        s = out[m]
+        for u in range(N + E):
+            if not alive[m, u]:
+                continue
+            enemy = u >= N
+            o = N * nf_al + (u - N) * nf_en if enemy else u * nf_al
+            s[o] = f[m, HP, u] * inv_hp[u]
+            o += 1
+            if not enemy:  # cool_norm < 0 marks a healer: its energy stands in
+                c = cool_norm[u]
+                s[o] = f[m, EN, u] * -c if c < 0 else f[m, CD, u] * c
+                o += 1
+            s[o] = (f[m, X, u] - cx) / map_w
+            s[o + 1] = (f[m, Y, u] - cy) / map_h
+            o += 2
+            has_sh = sh_en if enemy else sh_al
+            if has_sh:
+                s[o] = f[m, SH, u] * sh_norm[u]
+                o += 1
+            for k in range(bits):
+                s[o + k] = onehot[u, k]

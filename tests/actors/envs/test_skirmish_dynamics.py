@@ -1,4 +1,5 @@
-"""Combat mechanics with hand-computed outcomes, seeding, and the 3m sanity thresholds."""
+"""Combat mechanics with hand-computed outcomes, SMAC's behaviour rules (passive agents,
+attack-moving enemy, baneling bursts), seeding, and the scripted-policy sanity thresholds."""
 
 import numpy as np
 import pytest
@@ -8,8 +9,8 @@ from actors.envs.skirmish.scripts import POLICIES, evaluate
 from actors.envs.skirmish.spec import make_config, parse_map
 
 
-def battle_env(allies, enemies, **options) -> SkirmishEnv:
-    raw = {"episode_limit": 50, "allies": allies, "enemies": enemies}
+def battle_env(allies, enemies, limit=50, **options) -> SkirmishEnv:
+    raw = {"episode_limit": limit, "allies": allies, "enemies": enemies}
     cfg = make_config(start_jitter=0.0, unit_jitter=0.0, **options)
     env = SkirmishEnv(parse_map("t", raw, "<test>"), seed=0, config=cfg)
     env.reset()
@@ -131,9 +132,144 @@ def test_same_seed_same_episode_other_seed_differs():
     assert not np.array_equal(first_obs(5), first_obs(6))
 
 
+def test_agents_fire_only_when_ordered():
+    # SMAC makes the allies passive: a stopped marine with an enemy in range does not shoot.
+    env = battle_env(
+        [{"type": "marine", "count": 1, "positions": [[10, 10]]}],
+        [{"type": "marine", "count": 1, "positions": [[14, 10]]}],
+    )
+    b = env.battle
+    b.cd[0, 1] = 1e9  # the enemy holds fire
+    for _ in range(3):
+        env.step([1])
+    assert b.hp[0, 1] == pytest.approx(45.0)
+    env.step([6])
+    assert b.hp[0, 1] == pytest.approx(45.0 - 6.0)
+
+
+def test_enemy_attack_moves_to_the_agents_and_fires():
+    # 20 cells apart (beyond acquire range 9): the enemy walks toward the agents' spawn at
+    # marine speed, keeps its lane, then stops at its range (5) and shoots.
+    env = battle_env(
+        [{"type": "marine", "count": 1, "positions": [[5, 10]]}],
+        [{"type": "marine", "count": 1, "positions": [[25, 10]]}],
+    )
+    b = env.battle
+    env.step([1])
+    assert b.x[0, 1] == pytest.approx(25 - 3.15 / 22.4 * 8)
+    assert b.y[0, 1] == pytest.approx(10.0)
+    for _ in range(14):
+        env.step([1])
+    gap = b.x[0, 1] - b.x[0, 0] - 2 * 0.375
+    assert 4.5 < gap <= 5.0
+    assert b.hp[0, 0] < 45.0
+
+
+def test_killed_baneling_bursts_on_its_killers():
+    # A 1-hp baneling (stopped, so it never attacks) dies to the zerglings biting it and
+    # bursts: 35 to every enemy zergling within 2.2 (+ its radius) of it, none to the far one.
+    env = battle_env(
+        [
+            {"type": "baneling", "count": 1, "positions": [[10, 10]]},
+            {"type": "marine", "count": 1, "positions": [[2, 30]]},
+        ],
+        [{"type": "zergling", "count": 3, "positions": [[10.8, 10], [10, 10.8], [20, 20]]}],
+        bane_dodge=-1.0,
+    )
+    b, st = env.battle, env.vec.st
+    bane = next(u for u in range(2) if st.types[u].kind == "baneling")
+    b.hp[0, bane] = 1.0
+    env.step([1, 1])
+    assert not b.alive[0, bane]
+    assert list(b.alive[0, 2:]) == [False, False, True]
+
+
+def test_baneling_splash_spares_its_own_side():
+    env = battle_env(
+        [
+            {"type": "baneling", "count": 1, "positions": [[10, 10]]},
+            {"type": "zergling", "count": 1, "positions": [[10, 11]]},
+        ],
+        [{"type": "zergling", "count": 2, "positions": [[10.8, 10], [25, 25]]}],
+    )
+    b, st = env.battle, env.vec.st
+    bane = next(u for u in range(2) if st.types[u].kind == "baneling")
+    acts = [1, 1]
+    acts[bane] = 6  # burst on enemy 0
+    env.step(acts)
+    assert not b.alive[0, bane] and not b.alive[0, 2]
+    assert b.hp[0, 1 - bane] == pytest.approx(35.0)
+
+
+def test_enemy_keeps_out_of_a_living_agent_banelings_burst():
+    # Both zerglings are within the burst radius (2.2) + 0.5 of the baneling: the closer one
+    # may take it on, the other backs away.
+    env = battle_env(
+        [{"type": "baneling", "count": 1, "positions": [[10, 10]]}],
+        [{"type": "zergling", "count": 2, "positions": [[11.5, 10], [12.2, 10.5]]}],
+    )
+    b = env.battle
+    env.step([1])
+    assert b.alive[0, 0]
+    assert b.x[0, 1] <= 11.5 and b.x[0, 2] > 12.2
+
+
+def test_ground_weapons_skip_air_units():
+    # The zergling cannot hit the medivac next to it, so it goes for the marine.
+    env = battle_env(
+        [
+            {"type": "medivac", "count": 1, "positions": [[10, 10]]},
+            {"type": "marine", "count": 1, "positions": [[3, 10]]},
+        ],
+        [{"type": "zergling", "count": 1, "positions": [[11, 10]]}],
+    )
+    b, st = env.battle, env.vec.st
+    med = next(u for u in range(2) if st.types[u].kind == "healer")
+    x0 = b.x[0, 2]
+    for _ in range(2):
+        env.step([1, 1])
+    assert b.hp[0, med] == pytest.approx(150.0)
+    assert b.x[0, 2] < x0  # heading for the marine
+
+
+@pytest.mark.parametrize("name", ["bane_vs_bane", "bane_no_z", "2s3z"])
+def test_returns_stay_within_twenty_and_the_dead_have_no_health(name):
+    venv = make_skirmish_vec(50, seed=1, map_name=name)
+    rng = np.random.default_rng(1)
+    venv.reset()
+    active = np.ones(50, bool)
+    ret = np.zeros(50)
+    while active.any():
+        r, term, _ = venv.step(POLICIES["random"](venv, rng), active)
+        ret += r
+        active &= ~term
+        b = venv.battle
+        assert (b.hp[~b.alive] == 0).all() and (b.hp >= 0).all()
+    assert ret.max() <= 20.0 + 1e-4
+
+
 def test_3m_focus_fire_wins_and_random_loses():
     venv = make_skirmish_vec(100, seed=0, map_name="3m")
     focus = evaluate(venv, POLICIES["focus_fire"], 100, seed=0)
     rand = evaluate(venv, POLICIES["random"], 100, seed=0)
     assert focus["win_rate"] >= 0.8
     assert rand["win_rate"] <= 0.1
+
+
+@pytest.mark.parametrize(
+    "name", ["3m", "8m", "2s3z", "3s5z", "1c3s5z", "MMM2", "2c_vs_64zg", "bane_vs_bane"]
+)
+def test_random_policy_loses(name):
+    venv = make_skirmish_vec(100, seed=0, map_name=name)
+    assert evaluate(venv, POLICIES["random"], 100, seed=0)["win_rate"] <= 0.1
+
+
+@pytest.mark.parametrize(
+    ("name", "policy"),
+    [("8m", "focus_fire"), ("2s3z", "focus_fire"), ("bane_vs_bane", "bane_charge")],
+)
+def test_scripted_policy_clearly_beats_random(name, policy):
+    venv = make_skirmish_vec(100, seed=0, map_name=name)
+    scripted = evaluate(venv, POLICIES[policy], 100, seed=0)["win_rate"]
+    rand = evaluate(venv, POLICIES["random"], 100, seed=0)["win_rate"]
+    assert scripted >= 0.5 and scripted >= rand + 0.4

@@ -198,3 +198,34 @@ def test_custom_map_file_builds_variant(tmp_path):
     assert (venv.info.n_agents, venv.info.n_enemies, venv.info.episode_limit) == (16, 24, 150)
     # 4 + 24 x 7 + 15 x 7 + 3, as SMAC computes it for a bane map with 16 agents.
     assert venv.info.obs_shape == 4 + 24 * 7 + 15 * 7 + 3
+
+
+def test_blob_formation_and_attack_point(tmp_path):
+    # SC2-style spawn: every unit of a side on the free spot nearest its point, no overlaps;
+    # the enemy's attack-move goal is the given point (shifted with the agents' formation).
+    path = tmp_path / "blob.yaml"
+    path.write_text(
+        "episode_limit: 20\nformation: blob\nattack_point: [9, 16]\n"
+        "allies: [{type: stalker, count: 2, at: [9, 16]}, {type: zealot, count: 3, at: [9, 16]}]\n"
+        "enemies: [{type: zealot, count: 3, at: [23, 16]}]\n"
+    )
+    spec = load_map_file(path)
+    venv = SkirmishVecEnv(spec, 1, seed=0)
+    st = venv.st
+    pos, r = st.start_pos[: st.N], st.radius[: st.N]
+    gaps = np.hypot(*(pos[:, None] - pos[None]).transpose(2, 0, 1)) - r[:, None] - r[None]
+    assert (gaps[~np.eye(st.N, dtype=bool)] >= 0).all()
+    assert np.abs(pos - [9, 16]).max() < 2.5
+    np.testing.assert_allclose(st.goal, [9, 16])
+    path.write_text(path.read_text().replace("blob", "square"))
+    with pytest.raises(EnvError, match=r"blob.yaml.*'formation'"):
+        load_map_file(path)
+
+
+def test_bench_time_env_reports_best_and_median_blocks():
+    from cluster.bench.env import time_env
+
+    fig = time_env("skirmish/3m", 4, 5, seed=0, repeats=2)
+    assert fig["repeats"] == 2 and len(fig["block_seconds"]) == 2
+    assert fig["env_steps_per_s"] >= fig["env_steps_per_s_median"] > 0
+    assert fig["agent_steps_per_s"] == pytest.approx(3 * fig["env_steps_per_s"])
