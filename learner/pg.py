@@ -138,8 +138,8 @@ class CACConfig:
     target_update_interval: int = 200
     critic_hidden: tuple[int, ...] = (64, 64)
     critic_input: Literal["obs", "state", "obs_state"] = "obs"
-    kl_threshold: float = 0.02
-    polyak_tau: float = 0.01
+    kl_threshold: float = 0.05
+    polyak_tau: float = 0.05
     kl_granularity: Literal["agent", "joint"] = "agent"
     agent: AgentConfig = field(default_factory=AgentConfig)
 
