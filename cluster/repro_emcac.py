@@ -1,9 +1,10 @@
 """Seed Table 5.2 and Figs. 5.10-5.13: the EM-CAC ablation (CAC, E-CAC, EM-CAC, COMA, QMIX).
 
 Each (algorithm, env) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a small
-process pool. Every evaluation is appended to `runs/<env>__<algo>.jsonl` as it happens (a long
-run that dies keeps what it measured); at the end summary.json, curves.json and one
-emcac_<map>.png per env (test win rate and test return against env steps) are written.
+process pool. Every evaluation is appended to `evals/<env>__<algo>.jsonl` as it happens (a long
+run that dies keeps what it measured, and `load_evals` rebuilds curves from those files); at
+the end summary.json, curves.json and one emcac_<map>.png per env (test win rate and test return
+against env steps) are written.
 
 Summary per (env, algo), win rates in [0, 1]:
     median_win_rate_last10 / mean_win_rate_last10: each seed's mean test win rate over its last
@@ -88,6 +89,30 @@ def run_pair(
     return Curve(
         algo, env, curve.t_env, curve.won, curve.returns, time.monotonic() - started, curve.learner
     )
+
+
+def load_evals(log_dir: Path, algos: list[str], envs: list[str]) -> list[Curve]:
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped)."""
+    curves = []
+    for env in envs:
+        for algo in algos:
+            path = log_dir / f"{env.replace('/', '-')}__{algo}.jsonl"
+            if not path.exists() or not path.read_text().strip():
+                continue
+            rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+            diag = [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows]
+            curves.append(
+                Curve(
+                    algo,
+                    env,
+                    [r["t_env"] for r in rows],
+                    [r["won"] for r in rows],
+                    [r["returns"] for r in rows],
+                    float(rows[-1]["wall_s"]),
+                    diag,
+                )
+            )
+    return curves
 
 
 def steps_to(t_env: np.ndarray, median_curve: np.ndarray, level: float) -> int | None:

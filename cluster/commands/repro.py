@@ -71,6 +71,11 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+    m.add_argument(
+        "--summarise-only",
+        action="store_true",
+        help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl",
+    )
     m.set_defaults(func=cmd_emcac)
 
 
@@ -95,9 +100,15 @@ def cmd_emcac(args: argparse.Namespace) -> int:
         for a in algos:
             load_train_config(a, g, [], overrides)
     out = Path(args.out)
-    (out / "runs").mkdir(parents=True, exist_ok=True)
+    (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = repro_emcac.run(algos, envs, args.seeds, overrides, args.workers, out / "runs")
+    if args.summarise_only:
+        curves = repro_emcac.load_evals(out / "evals", algos, envs)
+        envs = [g for g in envs if any(c.env == g for c in curves)]
+        if not curves:
+            raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
+    else:
+        curves = repro_emcac.run(algos, envs, args.seeds, overrides, args.workers, out / "evals")
     summary = repro_emcac.summarise(curves)
     write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
@@ -113,7 +124,7 @@ def cmd_emcac(args: argparse.Namespace) -> int:
                 f"mean {v['mean_win_rate_last10']:.2f}  steps to 50% {v['steps_to_50']} "
                 f"to 80% {v['steps_to_80']}"
             )
-    print(f"results in {out}: summary.json, curves.json, runs/, " + ", ".join(plots))
+    print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
     return 0
 
 

@@ -94,10 +94,20 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
         for k in ("steps_to_50", "steps_to_80"):
             assert cell[k] is None or isinstance(cell[k], int)
     assert (out / "emcac_3m.png").stat().st_size > 0
-    lines = [json.loads(x) for x in (out / "runs" / "skirmish-3m__emcac.jsonl").open()]
+    lines = [json.loads(x) for x in (out / "evals" / "skirmish-3m__emcac.jsonl").open()]
     assert len(lines) >= 2 and all(len(x["won"]) == 2 for x in lines)
     assert "kl_masked_fraction" in lines[-1]
     assert "skirmish/3m" in capsys.readouterr().out
+    # The same summary comes back from the evaluation logs alone.
+    before = (out / "summary.json").read_text()
+    (out / "summary.json").unlink()
+    args = ["repro", "emcac", "--envs", "skirmish/3m", "--algos", "cac,emcac", "--out", str(out)]
+    assert main([*args, "--summarise-only"]) == 0
+    again = json.loads((out / "summary.json").read_text())
+    for algo, cell in json.loads(before)["skirmish/3m"].items():
+        for k, v in cell.items():
+            if k != "wall_s":
+                assert again["skirmish/3m"][algo][k] == v, (algo, k)
 
 
 @pytest.mark.parametrize(
