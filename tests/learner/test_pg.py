@@ -242,3 +242,24 @@ def test_metrics_are_finite_and_name_the_mask():
         m = learner.step(batch)
         assert ("kl_masked_fraction" in m) == has_kl
         assert all(np.isfinite(v) for v in m.values())
+
+
+@pytest.mark.parametrize("name", PG_ALGOS)
+def test_padding_is_ignored_with_ragged_episodes_and_the_extra_batch(name):
+    """Ragged skirmish episodes padded further (main and extra batch) give the same update."""
+    info, batch = _episodes("skirmish/3m", 3)
+    _, extra = _episodes("skirmish/3m", 3, seed=1)
+    spec = ALGOS[name]
+    results = []
+    for pad in (0, 4):
+        torch.manual_seed(1)
+        learner = spec.build(spec.config_cls(), info.schema(), 1, "cpu")
+        main_b = batch.pad_to(batch.max_t + pad) if pad else batch
+        extra_b = extra.pad_to(extra.max_t + pad) if pad else extra
+        metrics = learner.step(main_b, extra_b)
+        results.append((metrics, learner.state_dict()))
+    for k, v in results[0][0].items():
+        assert results[1][0][k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
+    for mod in ("agent", "critic"):
+        for k, v in results[0][1][mod].items():
+            torch.testing.assert_close(v, results[1][1][mod][k], atol=1e-6, rtol=1e-5)
