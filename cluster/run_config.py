@@ -180,10 +180,13 @@ SECTIONS = {
 
 
 def default_files(algo: str, env_id: str) -> list[Path]:
-    """The shipped YAML layers for (algo, env): algos/<algo>.yaml, envs/<family>.yaml,
-    envs/<family>/<name>.yaml, each only if present."""
+    """The shipped YAML layers for (algo, env), later ones winning, each only if present:
+    envs/<family>.yaml (the env family's schedule, evaluation and value-family data flow),
+    algos/<algo>.yaml (the algorithm's own hyper-parameters, including data flow it fixes,
+    e.g. the policy-gradient family's 4 new episodes per step and 32-episode cycling buffer),
+    envs/<family>/<name>.yaml (what one map needs)."""
     family, _, name = env_id.partition("/")
-    candidates = [CONFIG_DIR / "algos" / f"{algo}.yaml", CONFIG_DIR / "envs" / f"{family}.yaml"]
+    candidates = [CONFIG_DIR / "envs" / f"{family}.yaml", CONFIG_DIR / "algos" / f"{algo}.yaml"]
     candidates.append(CONFIG_DIR / "envs" / family / f"{name}.yaml")
     return [p for p in candidates if p.exists()]
 

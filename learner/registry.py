@@ -10,7 +10,9 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
+from learner.coma import COMAConfig, COMALearner
 from learner.networks import AgentNet, VersionedWeights
+from learner.pg import CACConfig, CACLearner
 from learner.rdn import RDNConfig, RDNLearner
 from learner.value import ValueConfig, ValueLearner
 
@@ -59,6 +61,10 @@ class AlgoSpec:
     extended: bool = False  # pg only: semi-online cycling buffer + off-policy critic pass
 
 
+def _cac(extended: bool, masked: bool) -> Callable[[Any, EpisodeSchema, int, str], Learner]:
+    return lambda cfg, schema, e, device: CACLearner(cfg, schema, extended, masked, e, device)
+
+
 def _value(mixing: str) -> Callable[[Any, EpisodeSchema, int, str], Learner]:
     return lambda cfg, schema, e, device: ValueLearner(cfg, schema, mixing, e, device)
 
@@ -78,6 +84,43 @@ ALGOS: dict[str, AlgoSpec] = {
         RDNConfig,
         lambda c, s, e, d: RDNLearner(c, s, e, d),
         "relevance decomposition network",
+    ),
+    "cac": AlgoSpec(
+        "cac",
+        CACConfig,
+        _cac(extended=False, masked=False),
+        "centralised actor-critic, fresh episodes only",
+        family="pg",
+    ),
+    "ecac": AlgoSpec(
+        "ecac",
+        CACConfig,
+        _cac(extended=True, masked=False),
+        "CAC + semi-online cycling buffer and an off-policy critic pass",
+        family="pg",
+        extended=True,
+    ),
+    "mcac": AlgoSpec(
+        "mcac",
+        CACConfig,
+        _cac(extended=False, masked=True),
+        "CAC + KL mask against a Polyak-averaged policy",
+        family="pg",
+    ),
+    "emcac": AlgoSpec(
+        "emcac",
+        CACConfig,
+        _cac(extended=True, masked=True),
+        "extended-masked CAC: cycling buffer, off-policy critic pass and KL mask",
+        family="pg",
+        extended=True,
+    ),
+    "coma": AlgoSpec(
+        "coma",
+        COMAConfig,
+        lambda c, s, e, d: COMALearner(c, s, e, d),
+        "COMA, counterfactual baseline",
+        family="pg",
     ),
 }
 

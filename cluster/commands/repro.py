@@ -1,4 +1,5 @@
-"""`credit repro matrix`: the seed's matrix-game experiment (Fig. 5.3) for every algorithm."""
+"""`credit repro matrix`: the seed's matrix-game experiment (Fig. 5.3) for every algorithm;
+`credit repro emcac`: the seed's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import logging
 import time
 from pathlib import Path
 
-from cluster import repro_matrix
+from cluster import repro_emcac, repro_matrix
 from cluster.cli_errors import UsageError
 from cluster.run_config import load_train_config
 from cluster.trainer import write_json
@@ -44,16 +45,93 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="config override for every run",
     )
     m.set_defaults(func=cmd_matrix)
+    register_emcac(rsub)
 
 
-def cmd_matrix(args: argparse.Namespace) -> int:
-    algos = [a for a in args.algos.split(",") if a]
-    games = [g for g in args.games.split(",") if g]
+def register_emcac(rsub: argparse._SubParsersAction) -> None:
+    m = rsub.add_parser(
+        "emcac", help="seed Table 5.2: CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps"
+    )
+    m.add_argument(
+        "--envs", default=",".join(repro_emcac.ENVS), help="comma-separated skirmish/smac env ids"
+    )
+    m.add_argument(
+        "--algos", default=",".join(repro_emcac.ALGOS), help="comma-separated algorithms"
+    )
+    m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and env (default 8)")
+    m.add_argument(
+        "--t-max", type=int, default=None, help="env steps per run (default: the env's YAML)"
+    )
+    m.add_argument("--out", required=True, help="output folder")
+    m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
+    m.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override for every run",
+    )
+    m.add_argument(
+        "--summarise-only",
+        action="store_true",
+        help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl",
+    )
+    m.set_defaults(func=cmd_emcac)
+
+
+def _check_algos(algos: list[str]) -> None:
     for a in algos:
         if a not in ALGOS:
             raise UsageError(
                 f"unknown algorithm {a!r}; valid algorithms: {', '.join(sorted(ALGOS))}"
             )
+
+
+def cmd_emcac(args: argparse.Namespace) -> int:
+    algos = [a for a in args.algos.split(",") if a]
+    envs = [g for g in args.envs.split(",") if g]
+    _check_algos(algos)
+    if not algos or not envs:
+        raise UsageError("--algos and --envs must name at least one algorithm and env")
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
+    for g in envs:  # validates every (algo, env) config before any training starts
+        for a in algos:
+            load_train_config(a, g, [], overrides)
+    out = Path(args.out)
+    (out / "evals").mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    if args.summarise_only:
+        curves = repro_emcac.load_evals(out / "evals", algos, envs)
+        envs = [g for g in envs if any(c.env == g for c in curves)]
+        if not curves:
+            raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
+    else:
+        curves = repro_emcac.run(algos, envs, args.seeds, overrides, args.workers, out / "evals")
+    summary = repro_emcac.summarise(curves)
+    write_json(out / "summary.json", summary)
+    (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
+    plots = []
+    for g in envs:
+        plots.append(f"emcac_{g.split('/', 1)[1]}.png")
+        repro_emcac.plot(curves, g, out / plots[-1])
+    log.info("repro emcac finished in %.0f s", time.monotonic() - started)
+    for g in envs:
+        for a, v in summary[g].items():
+            print(
+                f"{g:22s} {a:6s} win last10 median {v['median_win_rate_last10']:.2f} "
+                f"mean {v['mean_win_rate_last10']:.2f}  steps to 50% {v['steps_to_50']} "
+                f"to 80% {v['steps_to_80']}"
+            )
+    print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
+    return 0
+
+
+def cmd_matrix(args: argparse.Namespace) -> int:
+    algos = [a for a in args.algos.split(",") if a]
+    games = [g for g in args.games.split(",") if g]
+    _check_algos(algos)
     for g in games:
         if not g.startswith("matrix/"):
             raise UsageError(

@@ -44,7 +44,10 @@ def test_bad_values_name_the_key(overrides, message):
 
 
 def test_unknown_algo_and_env_list_valid_names():
-    with pytest.raises(ConfigError, match="valid algorithms: iql, qmix, qmix_ns, rdn, vdn"):
+    with pytest.raises(
+        ConfigError,
+        match="valid algorithms: cac, coma, ecac, emcac, iql, mcac, qmix, qmix_ns, rdn, vdn",
+    ):
         load_train_config("dqn", "matrix/four_game")
     with pytest.raises(ConfigError, match="env: unknown env 'matrix/five'; valid envs:"):
         load_train_config("rdn", "matrix/five")

@@ -79,7 +79,10 @@ def test_resume_continues_counters_and_optimiser(tmp_path):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--algo", "dqn"], "valid algorithms: iql, qmix, qmix_ns, rdn, vdn"),
+        (
+            ["--algo", "dqn"],
+            "valid algorithms: cac, coma, ecac, emcac, iql, mcac, qmix, qmix_ns, rdn, vdn",
+        ),
         (["--env", "matrix/nope"], "valid envs:"),
         (["--set", "algo.bogus=1"], "unknown config key algo.bogus"),
         (["--set", "run.t_max=-5"], "t_max must be >= 1"),

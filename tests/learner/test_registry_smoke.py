@@ -85,7 +85,10 @@ def test_seed_batched_update_equals_separate_updates():
 
 
 def test_unknown_algorithm_lists_valid_names():
-    with pytest.raises(ValueError, match="valid algorithms: iql, qmix, qmix_ns, rdn, vdn"):
+    with pytest.raises(
+        ValueError,
+        match="valid algorithms: cac, coma, ecac, emcac, iql, mcac, qmix, qmix_ns, rdn, vdn",
+    ):
         get_algo("dqn")
 
 

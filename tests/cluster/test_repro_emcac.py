@@ -1,0 +1,124 @@
+"""`credit repro emcac`: the summary numbers by hand, and a tiny end-to-end run."""
+
+import json
+
+import pytest
+
+from cluster.cli import main
+from cluster.repro_emcac import summarise_curve
+
+
+@pytest.mark.parametrize(
+    "t_env, won, expected",
+    [
+        # Median curve [0, .5, .8]: 50% at 20, 80% at 30. Seed means over the (only 3) last
+        # evaluations: [1.4/3, 1.2/3, 1.7/3] -> median 1.4/3, mean 4.3/9.
+        (
+            [10, 20, 30],
+            [[0.0, 0.0, 0.2], [0.5, 0.4, 0.9], [0.9, 0.8, 0.6]],
+            {
+                "median_win_rate_last10": 1.4 / 3,
+                "mean_win_rate_last10": 4.3 / 9,
+                "steps_to_50": 20,
+                "steps_to_80": 30,
+                "seeds": 3,
+            },
+        ),
+        # 12 evaluations of one seed: only the last 10 count; the curve never reaches 80%.
+        (
+            list(range(1, 13)),
+            [[1.0], [1.0]] + [[0.5]] * 10,
+            {
+                "median_win_rate_last10": 0.5,
+                "mean_win_rate_last10": 0.5,
+                "steps_to_50": 1,
+                "steps_to_80": 1,
+                "seeds": 1,
+            },
+        ),
+        (
+            [5, 10],
+            [[0.1, 0.9], [0.2, 0.3]],
+            {
+                "median_win_rate_last10": 0.375,
+                "mean_win_rate_last10": 0.375,
+                "steps_to_50": 5,
+                "steps_to_80": None,
+                "seeds": 2,
+            },
+        ),
+    ],
+)
+def test_summary_numbers_by_hand(t_env, won, expected):
+    got = summarise_curve(t_env, won)
+    assert got.keys() == expected.keys()
+    for k, v in expected.items():
+        assert got[k] == (pytest.approx(v) if isinstance(v, float) else v), k
+
+
+def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
+    out = tmp_path / "abl"
+    code = main(
+        [
+            "repro",
+            "emcac",
+            "--envs",
+            "skirmish/3m",
+            "--algos",
+            "cac,emcac",
+            "--seeds",
+            "2",
+            "--t-max",
+            "400",
+            "--out",
+            str(out),
+            "--workers",
+            "1",
+            "--set",
+            "run.test_interval=200",
+            "--set",
+            "run.test_episodes=2",
+            "--set",
+            "cycling.capacity=8",
+            "--set",
+            "replay.batch_size=4",
+        ]
+    )
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == {"skirmish/3m"} and set(summary["skirmish/3m"]) == {"cac", "emcac"}
+    for cell in summary["skirmish/3m"].values():
+        assert 0.0 <= cell["median_win_rate_last10"] <= 1.0
+        assert 0.0 <= cell["mean_win_rate_last10"] <= 1.0
+        assert cell["seeds"] == 2
+        for k in ("steps_to_50", "steps_to_80"):
+            assert cell[k] is None or isinstance(cell[k], int)
+    assert (out / "emcac_3m.png").stat().st_size > 0
+    lines = [json.loads(x) for x in (out / "evals" / "skirmish-3m__emcac.jsonl").open()]
+    assert len(lines) >= 2 and all(len(x["won"]) == 2 for x in lines)
+    assert "kl_masked_fraction" in lines[-1]
+    assert "skirmish/3m" in capsys.readouterr().out
+    # The same summary comes back from the evaluation logs alone.
+    before = (out / "summary.json").read_text()
+    (out / "summary.json").unlink()
+    args = ["repro", "emcac", "--envs", "skirmish/3m", "--algos", "cac,emcac", "--out", str(out)]
+    assert main([*args, "--summarise-only"]) == 0
+    again = json.loads((out / "summary.json").read_text())
+    for algo, cell in json.loads(before)["skirmish/3m"].items():
+        for k, v in cell.items():
+            if k != "wall_s":
+                assert again["skirmish/3m"][algo][k] == v, (algo, k)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--algos", "cac,dqn"], "unknown algorithm 'dqn'"),
+        (["--envs", "skirmish/nope"], "unknown env"),
+        (["--seeds", "0"], "--seeds must be >= 1"),
+    ],
+)
+def test_bad_input_exits_2(tmp_path, capsys, argv, message):
+    code = main(["repro", "emcac", "--out", str(tmp_path), "--envs", "skirmish/3m", *argv])
+    assert code == 2
+    assert message in capsys.readouterr().err
