@@ -68,7 +68,7 @@ def run_pair(
         curve.t_env.append(records[0].t_env)
         curve.won.append([float(r.test_won_mean or 0.0) for r in records])
         curve.returns.append([r.test_return_mean for r in records])
-        diag = {k: v for k, v in trainer.last_metrics.items() if k in LEARNER_KEYS}
+        diag = {k: v for k, v in trainer.core.last_metrics.items() if k in LEARNER_KEYS}
         curve.learner.append(diag)
         if path:
             line = {
@@ -84,8 +84,8 @@ def run_pair(
                 f.write(json.dumps(line) + "\n")
 
     trainer.train(on_eval=on_eval)
-    if not curve.t_env or curve.t_env[-1] != trainer.t_env:
-        on_eval(trainer.evaluate())
+    if not curve.t_env or curve.t_env[-1] != trainer.core.t_env:
+        on_eval(trainer.core.evaluate())
     return Curve(
         algo, env, curve.t_env, curve.won, curve.returns, time.monotonic() - started, curve.learner
     )

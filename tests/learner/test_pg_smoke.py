@@ -27,8 +27,8 @@ def test_trainer_smoke(name, env):
     records = []
     trainer.train(on_eval=records.extend)
     spec = ALGOS[name]
-    assert trainer.learner.policy_kind == "softmax" and trainer.learner.updates > 0
-    m = trainer.last_metrics
+    assert trainer.core.learner.policy_kind == "softmax" and trainer.core.learner.updates > 0
+    m = trainer.core.last_metrics
     assert all(np.isfinite(v) for v in m.values())
     assert ("kl_masked_fraction" in m) == (name in ("mcac", "emcac"))
     assert ("loss_critic_extra" in m) == spec.extended
