@@ -55,8 +55,13 @@ def ray_environment() -> dict[str, str]:
 
 
 def apply_ray_environment() -> None:
-    """Set `ray_environment()` in this process before `import ray` connects anywhere."""
-    os.environ.update(ray_environment())
+    """Set `ray_environment()` in this process before `import ray` connects anywhere; values
+    the user already set (e.g. RAY_AUTH_TOKEN_PATH for a remote cluster) are kept."""
+    user_token = "RAY_AUTH_TOKEN" in os.environ or "RAY_AUTH_TOKEN_PATH" in os.environ
+    for key, value in ray_environment().items():
+        if key == "RAY_AUTH_TOKEN_PATH" and user_token:
+            continue
+        os.environ.setdefault(key, value)
 
 
 @dataclass(frozen=True)
@@ -158,18 +163,17 @@ def down() -> None:
 
 
 def connect(address: str | None, num_cpus: int) -> str:
-    """Connect this driver: to `address` ("auto" = the recorded cluster), else start a private
-    local Ray instance on loopback for the lifetime of this process. Returns a description."""
+    """Connect this driver to `address` ("auto" = the recorded cluster, else Ray's own
+    discovery), or with no address start a private local Ray instance on loopback for the
+    lifetime of this process. Returns a description."""
     apply_ray_environment()
     import ray
 
     if address == "auto":
+        # The cluster `credit cluster up` recorded, else Ray's own discovery (RAY_ADDRESS, as
+        # KubeRay and `ray up` set it, or a head started on this machine with `ray start`).
         state = ClusterState.load()
-        if state is None:
-            raise ClusterError(
-                "--address auto: no credit cluster recorded; run `credit cluster up` first"
-            )
-        address = state.address
+        address = state.address if state is not None else "auto"
     if address:
         ray.init(address=address, logging_level="WARNING", log_to_driver=True)
         return f"joined Ray cluster at {address}"
