@@ -61,11 +61,12 @@ class BufferProcess:
         fsync: bool = True,
         metrics: bool = True,
         token: str | None = None,
+        host: str = "127.0.0.1",
     ):
         self.tables, self.schema, self.folder = tables, schema, Path(folder)
         self.fsync, self.metrics = fsync, metrics
         self.token = token or secrets.token_hex(16)
-        self.host = "127.0.0.1"
+        self.host = host
         self.port = 0
         self.metrics_port: int | None = None
         self.proc: subprocess.Popen | None = None

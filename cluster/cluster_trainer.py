@@ -55,6 +55,7 @@ class ClusterTrainer:
             self.out / "buffer",
             fsync=self.ccfg.fsync,
             metrics=self.ccfg.metrics,
+            host=self.ccfg.bind_host,
         )
         self.client: BufferClient | None = None
         self.coordinator = None
@@ -95,7 +96,7 @@ class ClusterTrainer:
         for i in range(len(self.actors)):
             self._start_loop(i)
         if self.metrics:
-            self.learner_endpoint = serve(self.metrics.registry)
+            self.learner_endpoint = serve(self.metrics.registry, host=self.ccfg.bind_host)
         self._describe()
         log.info(
             "%d rollout actors, buffer service on %s:%d",

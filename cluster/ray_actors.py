@@ -102,7 +102,10 @@ class RolloutActor:
         self.client = BufferClient(host, port, token=token, schema=info.schema(), max_retries=1000)
         self.coordinator = coordinator
         self.metrics = ActorMetrics(actor_id) if metrics else None
-        self.endpoint = serve(self.metrics.registry) if self.metrics else None
+        host = "127.0.0.1"
+        if cfg.cluster.bind_host not in ("127.0.0.1", "localhost"):
+            host = ray.util.get_node_ip_address()  # this actor's node, reachable from the head
+        self.endpoint = serve(self.metrics.registry, host=host) if self.metrics else None
         # Cumulative over this process's life (`stats`): where the loop's time goes.
         self.counters = {
             "rounds": 0,

@@ -118,6 +118,10 @@ class ClusterConfig:
         fsync: the buffer service fsyncs its log before acknowledging an insert.
         sample_timeout_s: longest the learner waits for a batch before checking on actors.
         metrics: run Prometheus exporters (actors, learner, buffer) and write the file-SD file.
+        bind_host: address the buffer service and the learner's exporter bind (loopback by
+            default). For actors on other machines set the head node's IP: the service then
+            requires its token, which the launcher always sets, and each actor's exporter binds
+            its own node's IP.
     """
 
     actors: int = 2
@@ -128,6 +132,7 @@ class ClusterConfig:
     fsync: bool = True
     sample_timeout_s: float = 30.0
     metrics: bool = True
+    bind_host: str = "127.0.0.1"
 
     def validate(self) -> None:
         if self.actors < 1:
@@ -141,6 +146,8 @@ class ClusterConfig:
             raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
         if self.sample_timeout_s <= 0:
             raise ValueError(f"sample_timeout_s must be > 0, got {self.sample_timeout_s}")
+        if not self.bind_host:
+            raise ValueError("bind_host must name an address, e.g. 127.0.0.1")
 
 
 @dataclass(frozen=True)
