@@ -20,6 +20,7 @@ import yaml
 
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import Episode, EpisodeBatch
+from cluster.batches import BatchPairer
 from cluster.buffer_proc import BufferProcess
 from cluster.loop_stats import LoopStats
 from cluster.metrics import LearnerMetrics, default_sd_file, serve, write_file_sd
@@ -49,6 +50,7 @@ class ClusterTrainer:
         self.cfg, self.out = cfg, Path(out)
         self.ccfg = cfg.cluster
         self.plan = core.plan
+        self.batches = BatchPairer(self.plan, self._sample)
         self.buffer = BufferProcess(
             self.plan.tables,
             core.info.schema(),
@@ -173,13 +175,9 @@ class ClusterTrainer:
         bar = Progress(run.t_max) if progress else None
         while core.t_env < run.t_max and not self.stop_requested:
             self._supervise()
-            batch = self._sample(self.plan.table, self.plan.batch_size)
-            extra = (
-                self._sample(self.plan.extra_table, self.plan.extra_batch_size)
-                if self.plan.extra_table
-                else None
-            )
-            if batch is not None and (extra is not None or not self.plan.extra_table):
+            pair = self.batches.next()
+            if pair is not None:
+                batch, extra = pair
                 started = time.perf_counter()
                 core.last_metrics = core.learner.step(batch, extra)
                 seconds = time.perf_counter() - started

@@ -97,3 +97,60 @@ def test_on_policy_variants_use_each_fresh_episode_once():
         assert buf.ready(plan.table, plan.batch_size)
         assert _seqs(buf.sample(plan.table, plan.batch_size)) == new
         assert not buf.ready(plan.table, plan.batch_size)  # used once, then gone
+
+
+def _limited(buf: LocalBuffer):
+    """The cluster trainer's sample: None while the table's limiter holds the batch back."""
+
+    def sample(table: str, n: int):
+        return buf.sample(table, n) if buf.ready(table, n) else None
+
+    return sample
+
+
+def _samples(buf: LocalBuffer, table: str) -> int:
+    """Episodes sampled from `table` so far (the limiter counts items, not requests)."""
+    return buf.stats()["tables"][table]["samples"]
+
+
+def test_cluster_pairing_never_spends_a_cycling_sample_on_a_skipped_step():
+    from cluster.batches import BatchPairer
+
+    plan = data_plan(load_train_config("emcac", "skirmish/3m"))
+    buf = LocalBuffer(plan.tables, seed=0)
+    pairer = BatchPairer(plan, _limited(buf))
+    buf.insert([_episode(s) for s in range(32)], tables=["cycling"])
+    assert pairer.next() is None  # replay not ready: the cycling table is left untouched
+    assert _samples(buf, "cycling") == 0
+    buf.insert([_episode(s) for s in range(100, 132)], tables=["replay"])
+    batch, extra = pairer.next()
+    assert _seqs(batch) == list(range(32)) and set(_seqs(extra)) <= set(range(100, 132))
+    assert _samples(buf, "cycling") == 32 and _samples(buf, "replay") == 32
+
+
+def test_cluster_pairing_keeps_the_extra_batch_until_the_main_batch_arrives():
+    from cluster.batches import BatchPairer
+
+    plan = data_plan(load_train_config("emcac", "skirmish/3m"))
+    buf = LocalBuffer(plan.tables, seed=0)
+    pairer = BatchPairer(plan, _limited(buf))
+    buf.insert([_episode(s) for s in range(32)], tables=["replay"])
+    assert pairer.next() is None  # cycling not ready; the replay batch is kept, not dropped
+    assert _samples(buf, "replay") == 32
+    buf.insert([_episode(s) for s in range(100, 132)], tables=["cycling"])
+    batch, extra = pairer.next()
+    assert _seqs(batch) == list(range(100, 132))
+    assert set(_seqs(extra)) <= set(range(32))
+    assert _samples(buf, "replay") == 32  # the kept batch was used, no second sample
+
+
+def test_cluster_pairing_of_an_on_policy_plan_samples_one_table():
+    from cluster.batches import BatchPairer
+
+    plan = data_plan(load_train_config("cac", "skirmish/3m"))
+    buf = LocalBuffer(plan.tables, seed=0)
+    pairer = BatchPairer(plan, _limited(buf))
+    assert pairer.next() is None
+    buf.insert([_episode(s) for s in range(4)])
+    batch, extra = pairer.next()
+    assert _seqs(batch) == [0, 1, 2, 3] and extra is None
