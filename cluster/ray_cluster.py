@@ -8,13 +8,16 @@ therefore gets the same environment (`ray_environment()`): the node address 127.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import secrets
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,15 +69,18 @@ def apply_ray_environment() -> None:
 
 @dataclass(frozen=True)
 class ClusterState:
-    """What `credit cluster up` recorded: where the head listens and with how many CPUs."""
+    """What `credit cluster up` recorded: where the head listens, with how many CPUs, and the
+    process group `ray start` ran in (every head process is in it; `down` stops that group)."""
 
     address: str
     num_cpus: int
+    pgid: int | None = None
 
     def save(self) -> None:
         path = state_dir() / "state.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"address": self.address, "num_cpus": self.num_cpus}))
+        d = {"address": self.address, "num_cpus": self.num_cpus, "pgid": self.pgid}
+        path.write_text(json.dumps(d))
 
     @classmethod
     def load(cls) -> ClusterState | None:
@@ -82,7 +88,7 @@ class ClusterState:
         if not path.exists():
             return None
         d = json.loads(path.read_text())
-        return cls(d["address"], int(d["num_cpus"]))
+        return cls(d["address"], int(d["num_cpus"]), d.get("pgid"))
 
 
 def _ray_cli() -> str:
@@ -95,11 +101,26 @@ def _ray_cli() -> str:
     return found
 
 
-def _run_ray(args: list[str], timeout: float = 120.0) -> subprocess.CompletedProcess:
+def _run_ray(
+    args: list[str], timeout: float = 120.0, new_session: bool = False
+) -> tuple[subprocess.CompletedProcess, int]:
+    """Run the `ray` CLI; returns its result and its pid (its process group's id when
+    `new_session`: the processes it leaves running stay in that group)."""
     env = {**os.environ, **ray_environment()}
-    return subprocess.run(
-        [_ray_cli(), *args], env=env, capture_output=True, text=True, timeout=timeout
-    )
+    with subprocess.Popen(
+        [_ray_cli(), *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=new_session,
+    ) as proc:
+        try:
+            out, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise ClusterError(f"`ray {args[0]}` did not finish in {timeout:.0f} s") from None
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), proc.pid
 
 
 def up(num_cpus: int, port: int = 6379, host: str = LOOPBACK) -> ClusterState:
@@ -125,19 +146,19 @@ def up(num_cpus: int, port: int = 6379, host: str = LOOPBACK) -> ClusterState:
         str(num_cpus),
     ]
     args += ["--include-dashboard=false", "--disable-usage-stats"]
-    done = _run_ray(args)
+    done, pgid = _run_ray(args, new_session=True)
     if done.returncode != 0:
         raise ClusterError(
             f"ray start failed (exit {done.returncode}):\n{done.stderr.strip()[-2000:]}"
         )
-    state = ClusterState(f"{host}:{port}", num_cpus)
+    state = ClusterState(f"{host}:{port}", num_cpus, pgid)
     state.save()
     log.info("Ray head up at %s with %d CPUs", state.address, num_cpus)
     return state
 
 
 def _alive(state: ClusterState) -> bool:
-    return _run_ray(["status", "--address", state.address], timeout=60).returncode == 0
+    return _run_ray(["status", "--address", state.address], timeout=60)[0].returncode == 0
 
 
 def status() -> str:
@@ -145,21 +166,75 @@ def status() -> str:
     state = ClusterState.load()
     if state is None:
         return "no credit Ray cluster recorded (start one with `credit cluster up`)"
-    done = _run_ray(["status", "--address", state.address], timeout=60)
+    done, _ = _run_ray(["status", "--address", state.address], timeout=60)
     if done.returncode != 0:
         err = done.stderr.strip()[-1000:]
         return f"the recorded cluster at {state.address} does not answer:\n{err}"
     return f"address: {state.address}\n{done.stdout.strip()}"
 
 
-def down() -> None:
-    """Stop every Ray process of this user on this machine (`ray stop`) and forget the state."""
-    done = _run_ray(["stop", "--force"])
-    if done.returncode != 0:
+def _proc_table() -> dict[int, tuple[int, int, str]]:
+    """pid -> (parent pid, process group, command line) of every process we can read."""
+    table = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # exited meanwhile, or not ours to read
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        table[int(entry.name)] = (int(fields[1]), int(fields[2]), cmdline)
+    return table
+
+
+def cluster_processes(pgid: int) -> list[int]:
+    """The head's processes: the members of `ray start`'s process group that are Ray's (a
+    reused group id names no Ray process), and their descendants (workers set up groups of
+    their own, but their parent is the raylet)."""
+    table = _proc_table()
+    found = {
+        pid for pid, (_, group, cmd) in table.items() if group == pgid and "ray" in cmd.lower()
+    }
+    grew = True
+    while grew:
+        children = {pid for pid, (ppid, _, _) in table.items() if ppid in found} - found
+        found |= children
+        grew = bool(children)
+    return sorted(found)
+
+
+def _signal(pids: list[int], sig: int) -> None:
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, sig)
+
+
+def down(grace_s: float = 10.0) -> int:
+    """Stop the cluster `up` started, and only it: SIGTERM to its processes, SIGKILL to those
+    still there after `grace_s`. Other Ray instances on the machine (other users' or other
+    runs' private ones) are left alone. Returns how many processes were signalled.
+
+    Raises ClusterError for a state file from before process groups were recorded.
+    """
+    state = ClusterState.load()
+    if state is None:
+        return 0
+    if state.pgid is None:
         raise ClusterError(
-            f"ray stop failed (exit {done.returncode}): {done.stderr.strip()[-1000:]}"
+            f"{state_dir() / 'state.json'} records no process group (written by an older "
+            "credit); stop that cluster with `ray stop`, then delete the file"
         )
+    pids = cluster_processes(state.pgid)
+    _signal(pids, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and set(pids) & set(_proc_table()):
+        time.sleep(0.2)
+    _signal(sorted(set(pids) & set(_proc_table())), signal.SIGKILL)
     (state_dir() / "state.json").unlink(missing_ok=True)
+    log.info("stopped %d Ray processes of the cluster at %s", len(pids), state.address)
+    return len(pids)
 
 
 def connect(address: str | None, num_cpus: int) -> str:

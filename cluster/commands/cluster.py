@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.set_defaults(func=cmd_up)
     st = csub.add_parser("status", help="show the cluster's nodes and resources")
     st.set_defaults(func=cmd_status)
-    dn = csub.add_parser("down", help="stop the cluster")
+    dn = csub.add_parser("down", help="stop the cluster `up` started (only its processes)")
     dn.set_defaults(func=cmd_down)
 
 
@@ -38,6 +38,9 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_down(args: argparse.Namespace) -> int:
-    ray_cluster.down()
-    print("Ray cluster stopped")
+    try:
+        stopped = ray_cluster.down()
+    except ray_cluster.ClusterError as e:
+        raise UsageError(str(e)) from None
+    print(f"Ray cluster stopped ({stopped} processes)" if stopped else "no credit Ray cluster up")
     return 0

@@ -15,6 +15,7 @@ import torch
 from buffer_service.config import BufferConfig, TableConfig
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
+from cluster import ray_cluster
 
 ray = pytest.importorskip("ray", reason="cluster mode needs ray")
 
@@ -201,9 +202,31 @@ def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     assert step(resumed) == step(learner) + (resumed["updates"] - learner["updates"])
 
 
+# A private Ray instance of another run on the same machine: `credit cluster down` must leave it
+# alone (it is answered before and after the down).
+BYSTANDER = """
+import sys
+from cluster.ray_cluster import connect
+connect(None, 1)
+import ray
+one = ray.remote(lambda: 1)
+print("ready", ray.get(one.remote()), flush=True)
+sys.stdin.readline()
+print("after", ray.get(one.remote(), timeout=60), flush=True)
+"""
+
+
 def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     """`credit cluster up` starts a Ray head on 127.0.0.1 that `--address auto` joins; `down`
-    stops it. (`down` is `ray stop`: every Ray process of this user on this machine.)"""
+    stops that head's processes and no other Ray instance."""
+    bystander = subprocess.Popen(
+        [sys.executable, "-c", BYSTANDER],
+        env={**env, "CREDIT_STATE_DIR": str(tmp_path / "other")},
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert bystander.stdout.readline().strip() == "ready 1"
     cli = [sys.executable, "-m", "cluster.cli", "cluster"]
     up = subprocess.run(
         [*cli, "up", "--num-cpus", "3", "--port", "6399"],
@@ -213,6 +236,8 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
         timeout=180,
     )
     assert up.returncode == 0, up.stderr[-2000:]
+    up_state = (tmp_path / "state" / "cluster" / "state.json").read_text()
+    assert ray_cluster.cluster_processes(json.loads(up_state)["pgid"])
     try:
         status = subprocess.run(
             [*cli, "status"], env=env, capture_output=True, text=True, timeout=120
@@ -230,6 +255,11 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
         assert json.loads((out / "summary.json").read_text())["t_env"] >= 100
     finally:
         down = subprocess.run([*cli, "down"], env=env, capture_output=True, text=True, timeout=120)
-    assert down.returncode == 0
+    assert down.returncode == 0, down.stderr[-2000:]
+    assert "Ray cluster stopped" in down.stdout
+    state = json.loads(up_state)
+    assert ray_cluster.cluster_processes(state["pgid"]) == []
     status = subprocess.run([*cli, "status"], env=env, capture_output=True, text=True, timeout=60)
     assert "no credit Ray cluster recorded" in status.stdout
+    after, _ = bystander.communicate("\n", timeout=120)
+    assert after.strip() == "after 1", "cluster down stopped another run's Ray instance"
