@@ -28,8 +28,8 @@ from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, masked_mean
-from learner.common import AgentConfig, TargetNet, Updater
-from learner.networks import MLP, AgentNet, VersionedWeights, unroll
+from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
+from learner.networks import MLP, AgentNet, unroll
 from learner.pg import masked_log_policy, policy_entropy, policy_gradient_loss
 from learner.targets import lambda_returns
 
@@ -93,7 +93,7 @@ class COMAConfig:
             )
 
 
-class COMALearner:
+class COMALearner(AgentCriticLearner):
     """Counterfactual critic update, then the actors' policy-gradient update.
 
     Calling loop::
@@ -188,24 +188,3 @@ class COMALearner:
             "advantage_abs_mean": float(masked_mean(adv.abs(), mask).mean()),
             "grad_norm_policy": float(norms.mean()),
         }
-
-    def get_weights(self) -> VersionedWeights:
-        return VersionedWeights.from_module(self.agent, self.updates)
-
-    def state_dict(self) -> dict:
-        return {
-            "agent": self.agent.state_dict(),
-            "critic": self.critic.state_dict(),
-            "target_critic": self.target_critic.module.state_dict(),
-            "agent_optimiser": self.agent_updater.optimiser.state_dict(),
-            "critic_optimiser": self.critic_updater.optimiser.state_dict(),
-            "updates": self.updates,
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.agent.load_state_dict(state["agent"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.module.load_state_dict(state["target_critic"])
-        self.agent_updater.optimiser.load_state_dict(state["agent_optimiser"])
-        self.critic_updater.optimiser.load_state_dict(state["critic_optimiser"])
-        self.updates = int(state["updates"])

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from learner.networks import clip_grad_norm_per_member
+from learner.networks import VersionedWeights, clip_grad_norm_per_member
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -68,3 +68,51 @@ class TargetNet:
             self.module.load_state_dict(self.source.state_dict())
             return True
         return False
+
+
+class AgentCriticLearner:
+    """Weights and checkpoints of a learner with a shared agent network, a critic with a target
+    copy, and one Updater for each (RDN, the CAC family, COMA).
+
+    Subclasses set `agent`, `critic`, `target_critic` (a TargetNet), `agent_updater`,
+    `critic_updater` and `updates`, and list any further modules in `extra_modules()`.
+    """
+
+    agent: nn.Module
+    critic: nn.Module
+    target_critic: TargetNet
+    agent_updater: Updater
+    critic_updater: Updater
+    updates: int
+
+    def extra_modules(self) -> dict[str, nn.Module | None]:
+        """Checkpointed modules beyond the common ones (None: absent in this variant)."""
+        return {}
+
+    def get_weights(self) -> VersionedWeights:
+        return VersionedWeights.from_module(self.agent, self.updates)
+
+    def state_dict(self) -> dict:
+        extra = {
+            k: m.state_dict() if m is not None else None for k, m in self.extra_modules().items()
+        }
+        return {
+            "agent": self.agent.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.module.state_dict(),
+            "agent_optimiser": self.agent_updater.optimiser.state_dict(),
+            "critic_optimiser": self.critic_updater.optimiser.state_dict(),
+            "updates": self.updates,
+            **extra,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.module.load_state_dict(state["target_critic"])
+        for key, module in self.extra_modules().items():
+            if module is not None:
+                module.load_state_dict(state[key])
+        self.agent_updater.optimiser.load_state_dict(state["agent_optimiser"])
+        self.critic_updater.optimiser.load_state_dict(state["critic_optimiser"])
+        self.updates = int(state["updates"])

@@ -28,7 +28,7 @@ import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, joint_obs, masked_mean
-from learner.common import AgentConfig, TargetNet, Updater
+from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
 from learner.kl_mask import (
     categorical_kl,
     joint_kl,
@@ -37,7 +37,7 @@ from learner.kl_mask import (
     masked_fraction,
     polyak_update_,
 )
-from learner.networks import MLP, AgentNet, VersionedWeights, unroll
+from learner.networks import MLP, AgentNet, unroll
 from learner.targets import lambda_returns
 
 NEG = -1e10  # logit of an unavailable action: exp underflows to exactly 0, no inf/NaN
@@ -173,7 +173,7 @@ def critic_features(tb: TensorBatch, kind: str) -> torch.Tensor:
     return torch.cat([joint_obs(tb.obs), tb.state], dim=-1)
 
 
-class CACLearner:
+class CACLearner(AgentCriticLearner):
     """The CAC family; `extended` and `masked` select the variant (module docstring).
 
     Calling loop::
@@ -295,26 +295,5 @@ class CACLearner:
         )
         return metrics
 
-    def get_weights(self) -> VersionedWeights:
-        return VersionedWeights.from_module(self.agent, self.updates)
-
-    def state_dict(self) -> dict:
-        return {
-            "agent": self.agent.state_dict(),
-            "critic": self.critic.state_dict(),
-            "target_critic": self.target_critic.module.state_dict(),
-            "target_policy": self.target_policy.state_dict() if self.target_policy else None,
-            "agent_optimiser": self.agent_updater.optimiser.state_dict(),
-            "critic_optimiser": self.critic_updater.optimiser.state_dict(),
-            "updates": self.updates,
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.agent.load_state_dict(state["agent"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.module.load_state_dict(state["target_critic"])
-        if self.target_policy is not None:
-            self.target_policy.load_state_dict(state["target_policy"])
-        self.agent_updater.optimiser.load_state_dict(state["agent_optimiser"])
-        self.critic_updater.optimiser.load_state_dict(state["critic_optimiser"])
-        self.updates = int(state["updates"])
+    def extra_modules(self) -> dict:
+        return {"target_policy": self.target_policy}

@@ -23,9 +23,9 @@ from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, masked_mean, obs_history
-from learner.common import AgentConfig, TargetNet, Updater
+from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
 from learner.lrp import LRP_RULES, agent_relevance, lrp_epsilon
-from learner.networks import MLP, AgentNet, VersionedWeights, unroll
+from learner.networks import MLP, AgentNet, unroll
 from learner.targets import td_targets
 
 
@@ -76,7 +76,7 @@ class RDNConfig:
             raise ValueError(f"lrp_rule must be one of {LRP_RULES}")
 
 
-class RDNLearner:
+class RDNLearner(AgentCriticLearner):
     """Critic TD update, then agent update toward LRP shares of the updated critic's value.
 
     Calling loop::
@@ -170,24 +170,3 @@ class RDNLearner:
             "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), tb.mask).mean()),
             "lrp_conservation_gap": float(masked_mean(gap, tb.mask).mean()),
         }
-
-    def get_weights(self) -> VersionedWeights:
-        return VersionedWeights.from_module(self.agent, self.updates)
-
-    def state_dict(self) -> dict:
-        return {
-            "agent": self.agent.state_dict(),
-            "critic": self.critic.state_dict(),
-            "target_critic": self.target_critic.module.state_dict(),
-            "agent_optimiser": self.agent_updater.optimiser.state_dict(),
-            "critic_optimiser": self.critic_updater.optimiser.state_dict(),
-            "updates": self.updates,
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.agent.load_state_dict(state["agent"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.module.load_state_dict(state["target_critic"])
-        self.agent_updater.optimiser.load_state_dict(state["agent_optimiser"])
-        self.critic_updater.optimiser.load_state_dict(state["critic_optimiser"])
-        self.updates = int(state["updates"])
