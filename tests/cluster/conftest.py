@@ -6,25 +6,14 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from cluster import metrics as m
+from tests.cluster.polling import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _wait_for(fn, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = fn()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.5)
 
 
 @pytest.fixture(scope="session")
@@ -43,7 +32,7 @@ def running_training(tmp_path_factory):
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=log)
     sd = out / "run" / "targets.json"
     try:
-        targets = _wait_for(
+        targets = wait_for(
             lambda: sd.exists() and len(m.read_file_sd(sd)) == 4 and m.read_file_sd(sd),
             timeout_s=180,
             what="the training's file-SD file",

@@ -16,6 +16,7 @@ from buffer_service.config import BufferConfig, TableConfig
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
 from cluster import ray_cluster
+from tests.cluster.polling import wait_for
 
 ray = pytest.importorskip("ray", reason="cluster mode needs ray")
 
@@ -35,18 +36,6 @@ def _cli(args):
 def _start(args, env, out: Path) -> subprocess.Popen:
     log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115 - closed with the process
     return subprocess.Popen(_cli([*args, "--out", str(out)]), env=env, stdout=log, stderr=log)
-
-
-def _wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"training exited with {proc.returncode} while waiting for {what}")
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def _progress(out: Path) -> int:
@@ -111,7 +100,7 @@ def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
     try:
-        _wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
+        wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
         victim = json.loads((out / "cluster.json").read_text())["actors"][0]
         killed_at_us = time.time_ns() // 1000
         os.kill(victim["pid"], signal.SIGKILL)
@@ -144,7 +133,7 @@ def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, e
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
     try:
-        _wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
+        wait_for(lambda: _progress(out) >= 60, 240, "training progress", proc)
         service = json.loads((out / "cluster.json").read_text())["buffer"]
         acked = _scrape_inserts(service["metrics_port"])  # counted when acknowledged
         os.kill(service["pid"], signal.SIGKILL)
@@ -173,14 +162,14 @@ def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "100000", "--set", "run.save_interval=50"], env, out)
     try:
-        _wait_for(lambda: (c := _checkpoint(out)) and c["t_env"] >= 150, 240, "a checkpoint", proc)
+        wait_for(lambda: (c := _checkpoint(out)) and c["t_env"] >= 150, 240, "a checkpoint", proc)
         service_pid = json.loads((out / "cluster.json").read_text())["buffer"]["pid"]
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
         proc.kill()
     # The buffer service dies with its launcher (no orphan left serving).
-    _wait_for(
+    wait_for(
         lambda: not Path(f"/proc/{service_pid}").exists(), 30, "the orphaned buffer service to exit"
     )
     saved = _checkpoint(out)

@@ -22,6 +22,7 @@ from cluster.dashboard.server import (
     ExporterSource,
     PrometheusSource,
 )
+from tests.cluster.polling import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = ROOT / "test-artifacts"
@@ -50,18 +51,6 @@ pytestmark = [
         CHROMEDRIVER is None, reason="chromedriver not on PATH (apt-get install chromium-driver)"
     ),
 ]
-
-
-def wait_for(fn, timeout_s=90.0, what="condition"):
-    """Poll fn() until truthy; the deadline only guards against a hang."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = fn()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.5)
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +87,7 @@ def check_dashboard(driver, url: str, shot: str) -> dict[str, dict]:
         ok = all(s.get(i, {}).get("points", 0) > 1 for i in FED_PANELS)
         return s if ok and s["env_steps"]["points"] >= 16 else None
 
-    state = wait_for(fed, what="every actor/learner panel to hold data points")
+    state = wait_for(fed, timeout_s=90, what="every actor/learner panel to hold data points")
     ARTIFACTS.mkdir(exist_ok=True)
     (ARTIFACTS / ".gitignore").write_text("*\n")
     height = driver.execute_script("return document.documentElement.scrollHeight")

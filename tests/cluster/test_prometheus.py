@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import time
 
 import pytest
 import yaml
@@ -13,23 +12,12 @@ import yaml
 from cluster import metrics as m
 from cluster import prometheus as prom
 from cluster.cli import main
+from tests.cluster.polling import wait_for
 
 HAVE_PROMETHEUS = shutil.which("prometheus") is not None
 needs_prometheus = pytest.mark.skipif(
     not HAVE_PROMETHEUS, reason="`prometheus` not on PATH (apt-get install prometheus)"
 )
-
-
-def wait_for(fn, timeout_s=60.0, what="condition"):
-    """Poll fn() until it returns something truthy; the deadline is a hang guard, not a check."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = fn()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.25)
 
 
 def test_render_config_scrapes_the_sd_file(tmp_path):
