@@ -211,6 +211,17 @@ def _signal(pids: list[int], sig: int) -> None:
             os.kill(pid, sig)
 
 
+def _forget_ray_address(address: str) -> None:
+    """Remove Ray's "latest cluster" file if it names `address` (as `ray stop` does), so no
+    driver tries to join the stopped head."""
+    from ray._common.utils import get_ray_address_file  # no connection: safe before the env
+
+    path = Path(get_ray_address_file(None))
+    with contextlib.suppress(OSError):
+        if path.read_text().strip() == address:
+            path.unlink()
+
+
 def down(grace_s: float = 10.0) -> int:
     """Stop the cluster `up` started, and only it: SIGTERM to its processes, SIGKILL to those
     still there after `grace_s`. Other Ray instances on the machine (other users' or other
@@ -232,6 +243,7 @@ def down(grace_s: float = 10.0) -> int:
     while time.monotonic() < deadline and set(pids) & set(_proc_table()):
         time.sleep(0.2)
     _signal(sorted(set(pids) & set(_proc_table())), signal.SIGKILL)
+    _forget_ray_address(state.address)
     (state_dir() / "state.json").unlink(missing_ok=True)
     log.info("stopped %d Ray processes of the cluster at %s", len(pids), state.address)
     return len(pids)
@@ -253,6 +265,7 @@ def connect(address: str | None, num_cpus: int) -> str:
         ray.init(address=address, logging_level="WARNING", log_to_driver=True)
         return f"joined Ray cluster at {address}"
     ray.init(
+        address="local",  # always a new instance, never the latest `ray start` head
         num_cpus=num_cpus,
         include_dashboard=False,
         logging_level="WARNING",

@@ -96,6 +96,30 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
     _assert_whole_and_unique(state)
 
 
+def test_emcac_trains_in_cluster_mode_on_both_tables(tmp_path, env):
+    """EM-CAC in cluster mode: every learner step takes its 32 cycling episodes and its 32
+    replay episodes for the extra critic pass from the buffer service, and no sample of the
+    cycling table is spent on a step that did not happen."""
+    from cluster.run_config import data_plan, load_train_config
+
+    out = tmp_path / "run"
+    args = ["--algo", "emcac", "--env", "skirmish/3m", "--mode", "cluster", "--actors", "2"]
+    args += ["--t-max", "1500", "--set", "run.test_episodes=2", "--out", str(out)]
+    done = subprocess.run(_cli(args), env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    updates = json.loads((out / "summary.json").read_text())["updates"]
+    assert updates > 0
+    plan = data_plan(load_train_config("emcac", "skirmish/3m"), actors=2)
+    state = BufferState(BufferConfig(tables=plan.tables))
+    Storage(str(out / "buffer" / "data")).restore(state)
+    tables = state.stats()["tables"]
+    assert tables["cycling"]["samples"] == 32 * updates
+    # at most one extra batch sampled and still waiting for its cycling batch at shutdown
+    assert tables["replay"]["samples"] in (32 * updates, 32 * (updates + 1))
+    learner = torch.load(out / "checkpoint" / "learner.pt", weights_only=False)
+    assert learner["target_policy"] is not None  # EM-CAC's Polyak policy is checkpointed
+
+
 def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
@@ -248,6 +272,10 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     assert "Ray cluster stopped" in down.stdout
     state = json.loads(up_state)
     assert ray_cluster.cluster_processes(state["pgid"]) == []
+    from ray._common.utils import get_ray_address_file
+
+    latest = Path(get_ray_address_file(None))  # Ray's "join this head" file, as `ray stop`
+    assert not latest.exists() or latest.read_text().strip() != "127.0.0.1:6399"
     status = subprocess.run([*cli, "status"], env=env, capture_output=True, text=True, timeout=60)
     assert "no credit Ray cluster recorded" in status.stdout
     after, _ = bystander.communicate("\n", timeout=120)
