@@ -1,8 +1,12 @@
 """The buffer service: an asyncio TCP server of whole episodes (DESIGN.md §4).
 
-One event loop owns all state, so request handling needs no locks; the only blocking
-calls on it are the log write (+ fsync) of an insert and snapshot writes, which is what
-makes "acknowledged means durable" hold (see `buffer_service.storage` for the guarantee).
+One event loop owns all state, so request handling needs no locks. An insert's log record is
+written and its episodes applied on the loop; its reply waits for an fsync that runs in a
+thread and covers every record written before it started (group commit), so "acknowledged
+means durable" holds while concurrent inserts share fsyncs (see `buffer_service.storage` for
+the guarantee). An episode may be sampled before its insert is acknowledged; if the service
+dies in between, the unacknowledged insert is retried by its client. Snapshot writes block
+the loop.
 
 Ops (request fields -> reply fields; every reply has ``ok``):
 
@@ -43,6 +47,42 @@ log = logging.getLogger(__name__)
 CLOSING_ERRORS = frozenset({"frame_too_large", "bad_version", "auth", "hello_required"})
 
 
+class GroupCommit:
+    """Acknowledge inserts once fsynced, with one fsync for every record written before it
+    started. The fsync runs in a thread, so the event loop keeps taking requests meanwhile.
+
+    Calling pattern (on the event loop)::
+
+        n = storage.append_insert(tables, body)
+        await commits.durable(n)        # returns once an fsync (or a snapshot) covered record n
+        await commits.idle()            # no fsync in flight (before closing the storage)
+    """
+
+    def __init__(self, storage: Storage) -> None:
+        self.storage = storage
+        self.synced = 0  # the last record number an fsync (or a snapshot) made durable
+        self.fsyncs = 0
+        self._task: asyncio.Task | None = None
+
+    async def durable(self, record: int) -> None:
+        while self.synced < record:
+            if self._task is None:
+                self._task = asyncio.ensure_future(self._sync())
+            await asyncio.shield(self._task)
+
+    async def idle(self) -> None:
+        while self._task is not None:
+            await asyncio.shield(self._task)
+
+    async def _sync(self) -> None:
+        try:
+            upto = await asyncio.to_thread(self.storage.sync)
+            self.synced = max(self.synced, upto)
+            self.fsyncs += 1
+        finally:
+            self._task = None
+
+
 class RequestError(Exception):
     """A refused request: becomes an error reply with `code`."""
 
@@ -64,6 +104,7 @@ class BufferServer:
         self.cfg = cfg
         self.state = BufferState(cfg)
         self.storage = Storage(cfg.snapshot_dir, cfg.fsync) if cfg.snapshot_dir else None
+        self.commits = GroupCommit(self.storage) if self.storage and cfg.fsync else None
         self.metrics = BufferMetrics(list(self.state.tables))
         self.rng = random.Random(int.from_bytes(os.urandom(8), "little"))
         self.port = 0
@@ -99,8 +140,10 @@ class BufferServer:
         if self._server is not None:
             await self._server.wait_closed()
         if self.storage is not None:
+            if self.commits is not None:
+                await self.commits.idle()
             if snapshot:
-                self.storage.snapshot(self.state)
+                self._snapshot()
             self.storage.close()
         self.metrics.stop_exporter()
 
@@ -181,7 +224,7 @@ class BufferServer:
         if op == "snapshot":
             if self.storage is None:
                 raise RequestError("bad_request", "server has no snapshot_dir")
-            return self._ok(path=self.storage.snapshot(self.state))
+            return self._ok(path=self._snapshot())
         raise RequestError("unknown_op", f"unknown op {op!r}")
 
     @staticmethod
@@ -262,7 +305,7 @@ class BufferServer:
             )
         fresh = [ep for ep in eps if not self.state.is_duplicate(ep.key)]
         if fresh and self.storage is not None:
-            self.storage.log_insert(tables, body)  # durable before anything is acked
+            self.storage.append_insert(tables, body)
         stored = sum(self.state.insert(ep, tables) for ep in eps)
         dups = len(eps) - stored
         for t in tables:
@@ -272,6 +315,10 @@ class BufferServer:
         self._update_sizes()
         await self._notify()
         self._maybe_snapshot()
+        if self.commits is not None:
+            # Acknowledged only once fsynced; a duplicate too, as its first insert may still be
+            # waiting for its fsync.
+            await self.commits.durable(self.storage.written)
         return self._ok(inserted=stored, duplicates=dups)
 
     async def _op_sample(self, msg: dict[str, Any]) -> dict[str, Any]:
@@ -323,7 +370,14 @@ class BufferServer:
     def _maybe_snapshot(self) -> None:
         every = self.cfg.snapshot_every_inserts
         if self.storage is not None and every and self.storage.records_since_snapshot >= every:
-            self.storage.snapshot(self.state)
+            self._snapshot()
+
+    def _snapshot(self) -> str:
+        """Snapshot now; everything written so far is then durable in the snapshot."""
+        path = self.storage.snapshot(self.state)
+        if self.commits is not None:
+            self.commits.synced = self.storage.written
+        return path
 
     def _update_sizes(self) -> None:
         for name, t in self.state.tables.items():
@@ -332,7 +386,8 @@ class BufferServer:
     def stats(self) -> dict[str, Any]:
         """Table sizes and counters, episodes stored, connections, log generation, and the
         requests the rate limiter held back (`limiter_waits`: per op, how many, the seconds
-        they waited in total, and how many timed out)."""
+        they waited in total, and how many timed out), and how many fsyncs acknowledged
+        how many insert records (`log_fsyncs`, `log_inserts`; group commit when fewer)."""
         st = self.state.stats()
         st["limiter_waits"] = {
             op: {"count": int(c), "seconds": round(s, 6), "timeouts": int(t)}
@@ -340,6 +395,8 @@ class BufferServer:
         }
         st["connections"] = len(self._conns)
         st["generation"] = self.storage.gen if self.storage else None
+        st["log_inserts"] = self.storage.written if self.storage else 0
+        st["log_fsyncs"] = self.commits.fsyncs if self.commits else 0
         return st
 
 

@@ -2,7 +2,9 @@
 
 Guarantee: when ``BufferConfig.fsync`` is true (the default) an insert is acknowledged only
 after its log record was written *and fsynced*, so an acknowledged episode survives a kill
--9 of the service, a kernel crash and a power loss (as far as the disk honours fsync). With
+-9 of the service, a kernel crash and a power loss (as far as the disk honours fsync). The
+server commits in groups: one fsync covers every record written before it started, so
+concurrent inserts share fsyncs instead of queueing one each. With
 ``fsync=False`` the record is still written (handed to the kernel) before the ack, which
 survives a kill -9 of the process but not a power loss. Sample records (which episodes were
 sampled, so a cycling table's at-most-K count and retirements survive too) are written but
@@ -28,6 +30,7 @@ import logging
 import os
 import re
 import struct
+import threading
 import zlib
 from typing import Any
 
@@ -86,7 +89,8 @@ class Storage:
 
     Args:
         directory: the snapshot dir (created if missing).
-        fsync: fsync every insert record before it is acknowledged.
+        fsync: fsync every insert record before it is acknowledged (the server's
+            GroupCommit waits for it; this class only records and syncs).
     """
 
     def __init__(self, directory: str, fsync: bool = True) -> None:
@@ -95,6 +99,8 @@ class Storage:
         self.gen = 0
         self.fd: int | None = None
         self.records_since_snapshot = 0
+        self.written = 0  # insert records appended by this process (see append_insert)
+        self._fd_lock = threading.Lock()  # `sync` (any thread) vs switching/closing the log
         os.makedirs(directory, exist_ok=True)
 
     def _path(self, kind: str, gen: int) -> str:
@@ -166,13 +172,24 @@ class Storage:
         self.records_since_snapshot = len(records)
         return len(records), size - end
 
-    def log_insert(self, tables: list[str], body: bytes) -> None:
-        """Append an insert request (its raw, already validated frame body); durable on return."""
+    def append_insert(self, tables: list[str], body: bytes) -> int:
+        """Append an insert request (its raw, already validated frame body), handed to the
+        kernel but not fsynced; returns its number, durable once `synced` reaches it."""
         assert self.fd is not None
         _write_record(self.fd, INSERT, {"tables": tables}, body)
-        if self.fsync:
-            os.fsync(self.fd)
         self.records_since_snapshot += 1
+        self.written += 1
+        return self.written
+
+    def sync(self) -> int:
+        """fsync the log; returns the number of the last insert record now durable. Safe to
+        call from another thread while records are appended; a snapshot waits for it (its
+        log may be the one the snapshot retires: the records in it are then in the snapshot)."""
+        with self._fd_lock:
+            assert self.fd is not None
+            upto = self.written
+            os.fsync(self.fd)
+            return upto
 
     def log_sample(self, table: str, keys: list[tuple[int, int]]) -> None:
         """Append which keys a sample took (written, not fsynced)."""
@@ -200,10 +217,11 @@ class Storage:
         os.replace(tmp, final)
         new_fd = os.open(self._path("log", new), os.O_WRONLY | os.O_CREAT | os.O_APPEND)
         self._fsync_dir()
-        old, self.gen = self.gen, new
-        if self.fd is not None:
-            os.close(self.fd)
-        self.fd = new_fd
+        with self._fd_lock:
+            old, self.gen = self.gen, new
+            if self.fd is not None:
+                os.close(self.fd)
+            self.fd = new_fd
         self.records_since_snapshot = 0
         for kind in ("log", "snapshot"):
             with contextlib.suppress(FileNotFoundError):
@@ -212,6 +230,7 @@ class Storage:
         return final
 
     def close(self) -> None:
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
+        with self._fd_lock:
+            if self.fd is not None:
+                os.close(self.fd)
+                self.fd = None

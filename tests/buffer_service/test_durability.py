@@ -14,6 +14,7 @@ from pathlib import Path
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
 from buffer_service.server import start_server_thread
+from buffer_service.state import BufferState
 from tests.buffer_service.conftest import SCHEMA, make_episode, table
 
 REPO = Path(__file__).resolve().parents[2]
@@ -162,6 +163,78 @@ def test_kill_9_loses_no_acked_episode(tmp_path):
     finally:
         killed.set()
         client.close()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def test_one_fsync_acknowledges_every_record_written_before_it(tmp_path):
+    import asyncio
+
+    from buffer_service.server import GroupCommit
+    from buffer_service.storage import Storage
+
+    storage = Storage(str(tmp_path))
+    storage.restore(BufferState(BufferConfig(tables=TABLES)))
+    commits = GroupCommit(storage)
+    records = [storage.append_insert(["replay"], b"x") for _ in range(3)]
+
+    async def three_inserts_waiting_together():
+        await asyncio.gather(*(commits.durable(r) for r in records))
+        await commits.durable(records[-1])  # already durable: no second fsync
+
+    asyncio.run(three_inserts_waiting_together())
+    assert (commits.synced, commits.fsyncs) == (3, 1)
+    storage.append_insert(["replay"], b"y")
+    asyncio.run(commits.durable(4))
+    assert (commits.synced, commits.fsyncs) == (4, 2)
+    storage.snapshot(BufferState(BufferConfig(tables=TABLES)))
+    storage.close()
+
+
+def test_kill_9_with_concurrent_clients_loses_no_acked_episode(tmp_path):
+    """Four clients insert at once, so their inserts share fsyncs (group commit); a kill -9
+    mid-stream must still lose none that was acknowledged."""
+    snap, port_file = tmp_path / "snap", tmp_path / "port.json"
+    proc = _serve_cli(snap, 0, port_file)
+    port = json.loads(port_file.read_text())["port"]
+    acked: list[tuple[int, int]] = []
+    errors: list[BaseException] = []
+    clients = [
+        BufferClient(port=port, schema=SCHEMA, backoff_s=0.05, max_retries=40) for _ in range(4)
+    ]
+
+    def actor(i: int):
+        try:
+            for seq in range(40):
+                clients[i].insert([make_episode(i, seq, t=3)])
+                acked.append((i, seq))
+        except BaseException as e:  # surfaced below
+            errors.append(e)
+
+    threads = [threading.Thread(target=actor, args=(i,)) for i in range(4)]
+    for th in threads:
+        th.start()
+    try:
+        while len(acked) < 40 and any(th.is_alive() for th in threads):
+            time.sleep(0.005)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        proc = _serve_cli(snap, port, port_file)
+        for th in threads:
+            th.join(60)
+        assert not errors, errors
+        assert len(acked) == 160
+        st = clients[0].stats()
+        assert st["episodes_stored"] == 160
+        batch = clients[0].sample("all", 160)
+        keys = list(zip(batch.actor_id.tolist(), batch.episode_seq.tolist(), strict=True))
+        assert sorted(keys) == sorted(acked)  # every acknowledged episode, exactly once
+    finally:
+        for c in clients:
+            c.close()
         proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(15)
