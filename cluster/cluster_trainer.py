@@ -86,13 +86,16 @@ class ClusterTrainer:
             # (`_supervise`), so it must not sit in a request retrying against it.
             max_retries=6,
         )
-        self.coordinator = Coordinator.remote(self.core.t_env, self.core.episodes)
+        name = f"credit-coordinator-{os.getpid()}-{time.time_ns()}"  # one per run and Ray job
+        self.coordinator = Coordinator.options(name=name).remote(
+            self.core.t_env, self.core.episodes
+        )
         self.publish()
         data = yaml.safe_dump(self.cfg.to_yaml_dict())  # small: inlined in the creation task
         address = (self.buffer.host, self.buffer.port, self.buffer.token)
         for i in range(self.ccfg.actors):
             actor = RolloutActor.options(num_cpus=self.ccfg.actor_cpus).remote(
-                i, data, address, self.coordinator, self.ccfg.metrics
+                i, data, address, name, self.ccfg.metrics
             )
             self.actors.append(actor)
         for i in range(len(self.actors)):

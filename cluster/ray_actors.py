@@ -75,7 +75,7 @@ class RolloutActor:
         actor_id: int,
         cfg_yaml: str,
         buffer: tuple[str, int, str],
-        coordinator,
+        coordinator: str,
         metrics: bool,
     ):
         self.actor_id = actor_id
@@ -100,7 +100,9 @@ class RolloutActor:
         )
         host, port, token = buffer
         self.client = BufferClient(host, port, token=token, schema=info.schema(), max_retries=1000)
-        self.coordinator = coordinator
+        # Looked up by name: a handle as a constructor argument would live in the object
+        # store, which Ray cannot guarantee to a restarted actor (ray-project/ray#53727).
+        self.coordinator = ray.get_actor(coordinator)
         self.metrics = ActorMetrics(actor_id) if metrics else None
         host = "127.0.0.1"
         if cfg.cluster.bind_host not in ("127.0.0.1", "localhost"):
