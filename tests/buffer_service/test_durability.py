@@ -122,6 +122,14 @@ def _serve_cli(snap: Path, port: int, port_file: Path) -> subprocess.Popen:
     return proc
 
 
+def _stop(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
 def test_kill_9_loses_no_acked_episode(tmp_path):
     snap, port_file = tmp_path / "snap", tmp_path / "port.json"
     proc = _serve_cli(snap, 0, port_file)
@@ -163,11 +171,7 @@ def test_kill_9_loses_no_acked_episode(tmp_path):
     finally:
         killed.set()
         client.close()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _stop(proc)
 
 
 def test_one_fsync_acknowledges_every_record_written_before_it(tmp_path):
@@ -235,8 +239,4 @@ def test_kill_9_with_concurrent_clients_loses_no_acked_episode(tmp_path):
     finally:
         for c in clients:
             c.close()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _stop(proc)
