@@ -111,7 +111,8 @@ def run_clients(args: argparse.Namespace, n_clients: int) -> dict:
                     lat[i].append(time.perf_counter() - t0)
 
             sample_s = _parallel(n_clients, sample)
-            stored = clients[0].stats()["episodes_stored"]
+            st = clients[0].stats()
+            stored = st["episodes_stored"]
             for c in clients:
                 c.close()
         finally:
@@ -123,6 +124,8 @@ def run_clients(args: argparse.Namespace, n_clients: int) -> dict:
         "clients": n_clients,
         "episodes_stored": stored,
         "inserts_per_s": round(n_ins / insert_s, 1),
+        # fsyncs that acknowledged the inserts (group commit: fewer than inserts)
+        "log_fsyncs": st.get("log_fsyncs"),
         "sample_p50_ms": round(float(np.percentile(all_lat, 50)), 3),
         "sample_p99_ms": round(float(np.percentile(all_lat, 99)), 3),
         "samples_per_s": round(n_clients * args.samples / sample_s, 1),
