@@ -154,17 +154,19 @@ def summarise(curves: list[Curve]) -> dict:
 
 
 def plot(curves: list[Curve], env: str, path: Path) -> None:
-    """Median test win rate and test return with the 25-75 percentile band, one line per algo."""
+    """Median test win rate and test return with the 25-75 percentile band, one line per algo;
+    below them the learner's policy entropy and (masked variants) the KL-masked fraction at
+    each evaluation (means over seeds)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
     mine = [c for c in curves if c.env == env]
     for c in mine:
         t = np.asarray(c.t_env)
-        for ax, data in zip(axes, (c.won, c.returns), strict=True):
+        for ax, data in zip(axes[0], (c.won, c.returns), strict=True):
             r = np.asarray(data)
             (line,) = ax.plot(t, np.median(r, axis=1), label=c.algo)
             ax.fill_between(
@@ -174,13 +176,19 @@ def plot(curves: list[Curve], env: str, path: Path) -> None:
                 alpha=0.2,
                 color=line.get_color(),
             )
+        for ax, key in zip(axes[1], ("entropy", "kl_masked_fraction"), strict=True):
+            points = [(x, d[key]) for x, d in zip(c.t_env, c.learner, strict=False) if key in d]
+            if points:
+                ax.plot(*zip(*points, strict=True), label=c.algo, color=line.get_color())
     seeds = len(mine[0].won[0]) if mine else 0
-    for ax, name in zip(axes, ("test win rate", "test return"), strict=True):
+    names = ("test win rate", "test return", "policy entropy (nats)", "KL-masked fraction")
+    for ax, name in zip(axes.flat, names, strict=True):
         ax.set_xlabel("env steps")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left")
-    axes[0].set_ylim(-0.02, 1.02)
+        if ax.lines:
+            ax.legend(loc="upper left")
+    axes[0, 0].set_ylim(-0.02, 1.02)
     fig.suptitle(f"{env}: median of {seeds} seeds, 25-75 percentile band")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
