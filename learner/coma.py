@@ -69,7 +69,7 @@ class COMAConfig:
     critic_lr: float = 5e-4
     grad_norm_clip: float = 10.0
     td_lambda: float = 0.8
-    entropy_coef: float = 0.01
+    entropy_coef: float = 0.1
     target_update_interval: int = 200
     critic_hidden: tuple[int, ...] = (128, 128)
     agent: AgentConfig = field(default_factory=AgentConfig)

@@ -134,7 +134,7 @@ class CACConfig:
     critic_lr: float = 5e-4
     grad_norm_clip: float = 10.0
     td_lambda: float = 0.8
-    entropy_coef: float = 0.01
+    entropy_coef: float = 0.1
     target_update_interval: int = 200
     critic_hidden: tuple[int, ...] = (64, 64)
     critic_input: Literal["obs", "state", "obs_state"] = "obs"
