@@ -29,7 +29,14 @@ log = logging.getLogger(__name__)
 ENVS = ("skirmish/3s5z", "skirmish/MMM2", "skirmish/1c3s5z", "skirmish/2c_vs_64zg")
 ALGOS = ("cac", "ecac", "emcac", "coma", "qmix")
 LAST = 10  # evaluations averaged for the final win rate (Table 5.2)
-LEARNER_KEYS = ("kl_masked_fraction", "kl_mean", "entropy", "loss_critic")
+LEARNER_KEYS = (
+    "kl_masked_fraction",
+    "kl_mean",
+    "entropy",
+    "loss_critic",
+    "loss_critic_extra",
+    "advantage_abs_mean",
+)
 
 
 @dataclass(frozen=True)
