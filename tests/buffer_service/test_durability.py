@@ -194,6 +194,9 @@ def test_one_fsync_acknowledges_every_record_written_before_it(tmp_path):
     storage.append_insert(["replay"], b"y")
     asyncio.run(commits.durable(4))
     assert (commits.synced, commits.fsyncs) == (4, 2)
+    storage.append_insert(["replay"], b"z")
+    asyncio.run(commits.durable(5, alone=True))  # one connection: fsync inline, same count
+    assert (commits.synced, commits.fsyncs) == (5, 3)
     storage.snapshot(BufferState(BufferConfig(tables=TABLES)))
     storage.close()
 
