@@ -85,6 +85,19 @@ def actor_critic_advantages(
     return g, (g - values) * mask
 
 
+def normalised_advantages(advantages: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """A / std(A) per member over the real entries (no mean shift: the critic stays the
+    baseline), so that β weighs the same against the policy gradient on every map.
+
+    Shapes: advantages, mask [E, ...] -> [E, ...] (zero on padding).
+    """
+    dims = tuple(range(1, advantages.dim()))
+    n = mask.sum(dims, keepdim=True).clamp_min(1.0)
+    mean = (advantages * mask).sum(dims, keepdim=True) / n
+    var = ((advantages - mean).pow(2) * mask).sum(dims, keepdim=True) / n
+    return advantages * mask / (var.sqrt() + 1e-8)
+
+
 def policy_gradient_loss(
     logp_taken: torch.Tensor,
     advantages: torch.Tensor,
@@ -126,6 +139,8 @@ class CACConfig:
         polyak_tau: τ of the target policy π̃ <- (1 - τ) π̃ + τ π after every update.
         kl_granularity: "agent" masks each (step, agent) by that agent's KL; "joint" masks
             whole steps by the joint policy's KL (the sum over agents).
+        advantage_norm: divide the advantages by their standard deviation in each batch
+            (not in the seed; off by default).
         agent: the shared agent network.
     """
 
@@ -141,6 +156,7 @@ class CACConfig:
     kl_threshold: float = 0.05
     polyak_tau: float = 0.05
     kl_granularity: Literal["agent", "joint"] = "agent"
+    advantage_norm: bool = False
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
@@ -261,6 +277,8 @@ class CACLearner(AgentCriticLearner):
         tb = TensorBatch.from_episodes(batch, self.device)
         e, b, t, n = tb.shape
         loss_c, g, adv = self.critic_pass(tb)
+        if self.cfg.advantage_norm:
+            adv = normalised_advantages(adv, tb.mask)
 
         inputs = agent_inputs(tb.obs, tb.actions, self.info.n_actions)
         avail = tb.avail[:, :, :t]

@@ -263,3 +263,23 @@ def test_padding_is_ignored_with_ragged_episodes_and_the_extra_batch(name):
     for mod in ("agent", "critic"):
         for k, v in results[0][1][mod].items():
             torch.testing.assert_close(v, results[1][1][mod][k], atol=1e-6, rtol=1e-5)
+
+
+def test_normalised_advantages_have_unit_spread_on_real_entries_only():
+    from learner.pg import normalised_advantages
+
+    adv = torch.tensor([[1.0, 3.0, 100.0], [2.0, -2.0, 0.0]])
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    out = normalised_advantages(adv, mask)
+    # member 0: real entries 1, 3 -> std 1 -> unchanged; the padding entry becomes 0
+    assert torch.allclose(out[0], torch.tensor([1.0, 3.0, 0.0]))
+    # member 1: entries 2, -2, 0 -> mean 0, std sqrt(8/3); signs kept, no mean shift
+    assert torch.allclose(out[1], torch.tensor([2.0, -2.0, 0.0]) / (8.0 / 3.0) ** 0.5)
+
+
+def test_advantage_norm_is_off_by_default_and_settable():
+    from cluster.run_config import load_train_config
+
+    assert load_train_config("emcac", "skirmish/3m").algo.advantage_norm is False
+    cfg = load_train_config("emcac", "skirmish/3m", [], ["algo.advantage_norm=true"])
+    assert cfg.algo.advantage_norm is True

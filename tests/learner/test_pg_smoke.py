@@ -37,6 +37,16 @@ def test_trainer_smoke(name, env):
         assert all(r.test_won_mean is not None for r in records)
 
 
+def test_emcac_with_advantage_norm_trains_and_reports_unit_scale_advantages():
+    torch.manual_seed(0)
+    overrides = ["run.t_max=600", "algo.advantage_norm=true", *SMALL]
+    trainer = LocalTrainer(load_train_config("emcac", "skirmish/3m", [], overrides), 2)
+    trainer.train()
+    m = trainer.core.last_metrics
+    assert trainer.core.learner.updates > 0 and all(np.isfinite(v) for v in m.values())
+    assert 0.1 < m["advantage_abs_mean"] < 3.0  # unit spread (the mean is not shifted)
+
+
 def test_train_cli_checkpoint_and_resume_keep_the_target_policy(tmp_path):
     out = tmp_path / "run"
     base = ["train", "--algo", "emcac", "--env", "matrix/four_game", "--out", str(out)]
