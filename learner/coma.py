@@ -30,7 +30,12 @@ from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, masked_mean
 from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
 from learner.networks import MLP, AgentNet, unroll
-from learner.pg import masked_log_policy, policy_entropy, policy_gradient_loss
+from learner.pg import (
+    masked_log_policy,
+    policy_entropy,
+    policy_gradient_loss,
+    validate_actor_critic,
+)
 from learner.targets import lambda_returns
 
 
@@ -75,22 +80,7 @@ class COMAConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
-        for name in ("gamma", "td_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("lr", "critic_lr", "grad_norm_clip"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.entropy_coef < 0:
-            raise ValueError(f"entropy_coef must be >= 0, got {self.entropy_coef}")
-        if self.target_update_interval < 1:
-            raise ValueError(
-                f"target_update_interval must be >= 1, got {self.target_update_interval}"
-            )
-        if not self.critic_hidden or min(self.critic_hidden) < 1:
-            raise ValueError(
-                f"critic_hidden needs at least one positive width, got {self.critic_hidden}"
-            )
+        validate_actor_critic(self)
 
 
 class COMALearner(AgentCriticLearner):

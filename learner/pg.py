@@ -119,6 +119,25 @@ def policy_gradient_loss(
     return -masked_mean(logp_taken * advantages.detach() + entropy_coef * entropy, mask)
 
 
+def validate_actor_critic(cfg) -> None:
+    """The checks every actor-critic config shares (CAC family, COMA): discount and λ in
+    [0, 1], positive rates and clip, β >= 0, a target period >= 1 and positive critic widths."""
+    for name in ("gamma", "td_lambda"):
+        if not 0.0 <= getattr(cfg, name) <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {getattr(cfg, name)}")
+    for name in ("lr", "critic_lr", "grad_norm_clip"):
+        if getattr(cfg, name) <= 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(cfg, name)}")
+    if cfg.entropy_coef < 0:
+        raise ValueError(f"entropy_coef must be >= 0, got {cfg.entropy_coef}")
+    if cfg.target_update_interval < 1:
+        raise ValueError(f"target_update_interval must be >= 1, got {cfg.target_update_interval}")
+    if not cfg.critic_hidden or min(cfg.critic_hidden) < 1:
+        raise ValueError(
+            f"critic_hidden needs at least one positive width, got {cfg.critic_hidden}"
+        )
+
+
 # -- config and learner ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CACConfig:
@@ -160,24 +179,11 @@ class CACConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
-        for name in ("gamma", "td_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("lr", "critic_lr", "grad_norm_clip", "kl_threshold"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.entropy_coef < 0:
-            raise ValueError(f"entropy_coef must be >= 0, got {self.entropy_coef}")
+        validate_actor_critic(self)
+        if self.kl_threshold <= 0:
+            raise ValueError(f"kl_threshold must be > 0, got {self.kl_threshold}")
         if not 0.0 < self.polyak_tau <= 1.0:
             raise ValueError(f"polyak_tau must be in (0, 1], got {self.polyak_tau}")
-        if self.target_update_interval < 1:
-            raise ValueError(
-                f"target_update_interval must be >= 1, got {self.target_update_interval}"
-            )
-        if not self.critic_hidden or min(self.critic_hidden) < 1:
-            raise ValueError(
-                f"critic_hidden needs at least one positive width, got {self.critic_hidden}"
-            )
 
 
 def critic_features(tb: TensorBatch, kind: str) -> torch.Tensor:
