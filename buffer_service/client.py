@@ -97,12 +97,19 @@ class BufferClient:
 
     # ---------------------------------------------------------------- public API
 
-    def insert(self, episodes: list[Episode], tables: list[str] | None = None) -> dict[str, int]:
+    def insert(
+        self,
+        episodes: list[Episode],
+        tables: list[str] | None = None,
+        timeout_s: float | None = None,
+    ) -> dict[str, int]:
         """Store `episodes` (durably, once each) in `tables` (None = every table).
 
         Args:
             episodes: whole episodes; split into frames under the server's size limit.
             tables: table names, or None for all.
+            timeout_s: longest wait for the rate limiter per frame (None: the server's
+                insert_timeout_s, which also caps it), then RateLimitedError.
 
         Returns:
             ``{"inserted": n, "duplicates": d}`` summed over frames; a retried frame's
@@ -113,7 +120,9 @@ class BufferClient:
             msg: dict[str, Any] = {"op": "insert", "episodes": chunk}
             if tables is not None:
                 msg["tables"] = list(tables)
-            reply = self._request(msg)
+            if timeout_s is not None:
+                msg["timeout_s"] = float(timeout_s)
+            reply = self._request(msg, extra_timeout=timeout_s)
             total["inserted"] += reply["inserted"]
             total["duplicates"] += reply["duplicates"]
         return total

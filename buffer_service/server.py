@@ -11,9 +11,9 @@ the loop.
 Ops (request fields -> reply fields; every reply has ``ok``):
 
 * ``hello``  {token, schema?} -> {v, schema, tables, max_frame_bytes}. Required first.
-* ``insert`` {episodes: [episode], tables?: [name]} -> {inserted, duplicates}.
+* ``insert`` {episodes: [episode], tables?: [name], timeout_s?} -> {inserted, duplicates}.
   All-or-nothing validation; duplicates of ``(actor_id, episode_seq)`` are acknowledged
-  and not stored again.
+  and not stored again. Waits for the rate limiter, then ``rate_limited``.
 * ``sample`` {table, batch_size, timeout_s?} -> {episodes: [episode]}; waits for the rate
   limiter, then ``rate_limited``.
 * ``stats``  {} -> {stats}.   * ``snapshot`` {} -> {path}.
@@ -95,6 +95,14 @@ class RequestError(Exception):
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
+
+
+def _timeout(msg: dict[str, Any], limit: float) -> float:
+    """A request's rate-limiter wait: its ``timeout_s``, capped by the server's `limit`."""
+    timeout = msg.get("timeout_s", limit)
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout >= 0:
+        raise RequestError("bad_request", f"timeout_s {timeout!r} must be a number >= 0")
+    return min(float(timeout), limit)
 
 
 class BufferServer:
@@ -302,10 +310,11 @@ class BufferServer:
 
     async def _op_insert(self, msg: dict[str, Any], body: bytes) -> dict[str, Any]:
         eps, tables = self._decode_insert(msg)
+        timeout = _timeout(msg, self.cfg.insert_timeout_s)
         if any(not self.state.is_duplicate(ep.key) for ep in eps):
             await self._wait(
                 lambda: all(self.state.tables[t].limiter.can_insert(1) for t in tables),
-                self.cfg.insert_timeout_s,
+                timeout,
                 f"insert into {tables}",
                 "insert",
             )
@@ -335,10 +344,7 @@ class BufferServer:
         limit = table.cfg.capacity if table.cfg.kind == "cycling" else 1 << 20
         if type(n) is not int or not 1 <= n <= limit:
             raise RequestError("bad_request", f"batch_size {n!r} outside 1..{limit} for {name}")
-        timeout = msg.get("timeout_s", self.cfg.sample_timeout_s)
-        if not isinstance(timeout, (int, float)) or not timeout >= 0:
-            raise RequestError("bad_request", f"timeout_s {timeout!r} must be a number >= 0")
-        timeout = min(float(timeout), self.cfg.sample_timeout_s)
+        timeout = _timeout(msg, self.cfg.sample_timeout_s)
         await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}", "sample")
         keys = self.state.choose(name, n, self.rng)
         if self.storage is not None:

@@ -25,6 +25,8 @@ from learner.networks import AgentNet
 
 log = logging.getLogger(__name__)
 
+INSERT_WAIT_S = 1.0  # one insert's wait for the rate limiter before the actor checks `stop`
+
 
 @ray.remote(num_cpus=0)
 class Coordinator:
@@ -115,7 +117,7 @@ class RolloutActor:
             "act_s": 0.0,  # run_round: env steps and policy forward passes
             "insert_s": 0.0,  # client.insert, incl. rate-limiter waits and the fsync
             "sync_s": 0.0,  # coordinator.sync round trips and fetching new weights
-            "insert_refusals": 0,  # inserts the rate limiter refused within its timeout
+            "insert_refusals": 0,  # inserts the rate limiter refused within INSERT_WAIT_S
         }
 
     def describe(self) -> dict:
@@ -160,10 +162,13 @@ class RolloutActor:
                 self.metrics.record(episodes, steps)
 
     def _insert(self, episodes: list) -> None:
-        """Insert, waiting out back-pressure (the learner is behind) for as long as it takes."""
+        """Insert, waiting out back-pressure (the learner is behind) for as long as it takes,
+        and asking the coordinator between waits whether to stop: at the end of a run the
+        loop returns within INSERT_WAIT_S instead of sitting in an insert that the service's
+        shutdown would cut."""
         while True:
             try:
-                self.client.insert(episodes)
+                self.client.insert(episodes, timeout_s=INSERT_WAIT_S)
                 return
             except RateLimitedError:
                 self.counters["insert_refusals"] += 1

@@ -120,6 +120,8 @@ def structured_cases() -> list[tuple[str, bytes, dict | None]]:
         "sample_no_table": {"op": "sample", "v": v, "table": None, "batch_size": 1},
         "sample_timeout_neg": {"op": "sample", "v": v, "table": "replay", "batch_size": 1}
         | {"timeout_s": -1},
+        "insert_timeout_str": insert_msg(w) | {"timeout_s": "1"},
+        "insert_timeout_bool": insert_msg(w) | {"timeout_s": True},
         "wrong_version": {"op": "stats", "v": v + 1},
         "version_str": {"op": "stats", "v": str(v)},
     }

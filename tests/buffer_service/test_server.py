@@ -95,6 +95,13 @@ def test_rate_limiter_blocks_and_releases(serve):
         BufferClient(port=srv.port).insert([make_episode(0, 3)])
         done.set()
 
+    started = time.monotonic()
+    with pytest.raises(RateLimitedError, match="insert"):
+        c.insert([make_episode(0, 3)], timeout_s=0.2)  # its own wait, under the server's 20 s
+    assert time.monotonic() - started < 10
+    assert c.stats()["tables"]["replay"]["size"] == 3  # refused: nothing stored
+    with pytest.raises(BufferServiceError, match="timeout_s"):
+        c.insert([make_episode(0, 3)], timeout_s=-1)
     th = threading.Thread(target=blocked_insert)
     th.start()
     assert not done.wait(0.5)  # cannot finish before a sample lowers the ratio

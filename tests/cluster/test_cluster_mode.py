@@ -54,8 +54,10 @@ def _stored_episodes(out: Path):
     return state
 
 
-def _assert_whole_and_unique(state):
-    assert state.duplicates == 0
+def _assert_whole_and_unique(state, in_flight: int = 0):
+    """Every stored episode whole, under its own key. `in_flight`: inserts a crash of the
+    service may have cut between storing and acknowledging; their retries are duplicates."""
+    assert state.duplicates <= in_flight
     for (actor, seq), ep in state.episodes.items():
         assert ep.key == (actor, seq)
         assert ep.length == 2 and bool(ep.terminated[-1]) and ep.filled.all()  # whole episodes
@@ -169,7 +171,7 @@ def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, e
     assert summary["buffer_restarts"] >= 1 and summary["t_env"] >= 600
     state = _stored_episodes(out)
     assert len(state.episodes) >= acked
-    _assert_whole_and_unique(state)
+    _assert_whole_and_unique(state, in_flight=2)  # one insert (num_envs 1) per actor
 
 
 def _checkpoint(out: Path):
