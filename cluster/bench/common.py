@@ -1,4 +1,5 @@
-"""What every benchmark's JSON carries: the machine and the command that made it."""
+"""What every benchmark's JSON carries (the machine and the command that made it), and the
+synthetic episodes the buffer benchmarks insert."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
+
+from buffer_service.episode import Episode, EpisodeSchema
+
 
 def machine() -> dict[str, Any]:
-    import numpy as np
-
     info: dict[str, Any] = {
         "hostname": platform.node(),
         "python": platform.python_version(),
@@ -45,3 +48,21 @@ def emit(name: str, figures: dict[str, Any], out: str | None = None) -> dict[str
         with open(out, "w") as f:
             f.write(text + "\n")
     return record
+
+
+def synthetic_episode(
+    schema: EpisodeSchema, length: int, actor_id: int, rng, episode_seq: int = 0
+) -> Episode:
+    """A random episode of `length` transitions with the arrays and dtypes of `schema`."""
+    t, n = length, schema.n_agents
+    return Episode(
+        obs=rng.random((t + 1, n, schema.obs_dim), dtype=np.float32),
+        state=rng.random((t + 1, schema.state_dim), dtype=np.float32),
+        avail_actions=np.ones((t + 1, n, schema.n_actions), np.uint8),
+        actions=rng.integers(0, schema.n_actions, (t, n)),
+        reward=rng.random(t, dtype=np.float32),
+        terminated=np.eye(1, t, t - 1, dtype=bool)[0],
+        filled=np.ones(t, bool),
+        actor_id=actor_id,
+        episode_seq=episode_seq,
+    )

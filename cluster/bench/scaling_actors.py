@@ -21,24 +21,9 @@ import ray
 
 from actors.rollout import clock_seq
 from buffer_service.client import BufferClient, RateLimitedError
-from buffer_service.episode import Episode, EpisodeSchema
+from buffer_service.episode import EpisodeSchema
+from cluster.bench.common import synthetic_episode
 from cluster.loop_stats import LoopStats
-
-
-def synthetic_episode(schema: EpisodeSchema, length: int, actor_id: int, rng) -> Episode:
-    """A random episode of `length` transitions with the arrays and dtypes of `schema`."""
-    t, n = length, schema.n_agents
-    return Episode(
-        obs=rng.random((t + 1, n, schema.obs_dim), dtype=np.float32),
-        state=rng.random((t + 1, schema.state_dim), dtype=np.float32),
-        avail_actions=np.ones((t + 1, n, schema.n_actions), np.uint8),
-        actions=rng.integers(0, schema.n_actions, (t, n)),
-        reward=rng.random(t, dtype=np.float32),
-        terminated=np.eye(1, t, t - 1, dtype=bool)[0],
-        filled=np.ones(t, bool),
-        actor_id=actor_id,
-        episode_seq=0,
-    )
 
 
 @ray.remote(max_restarts=0, max_concurrency=2)

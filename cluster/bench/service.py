@@ -22,7 +22,7 @@ import numpy as np
 
 from buffer_service.client import BufferClient
 from buffer_service.episode import Episode, EpisodeSchema
-from cluster.bench.common import emit
+from cluster.bench.common import emit, synthetic_episode
 
 SIZES = {
     "3m": EpisodeSchema(n_agents=3, obs_dim=30, state_dim=48, n_actions=9, max_t=60),
@@ -40,21 +40,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-fsync", action="store_true", help="serve with --no-fsync")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=cmd_service)
-
-
-def make_episode(schema: EpisodeSchema, actor: int, seq: int, rng) -> Episode:
-    t, n = schema.max_t, schema.n_agents
-    return Episode(
-        obs=rng.random((t + 1, n, schema.obs_dim), dtype=np.float32),
-        state=rng.random((t + 1, schema.state_dim), dtype=np.float32),
-        avail_actions=np.ones((t + 1, n, schema.n_actions), np.uint8),
-        actions=rng.integers(0, schema.n_actions, (t, n)),
-        reward=rng.random(t, dtype=np.float32),
-        terminated=np.zeros(t, bool),
-        filled=np.ones(t, bool),
-        actor_id=actor,
-        episode_seq=seq,
-    )
 
 
 def start_server(workdir: str, fsync: bool, capacity: int) -> tuple[subprocess.Popen, int]:
@@ -88,7 +73,7 @@ def _parallel(n: int, fn) -> float:
 def run_clients(args: argparse.Namespace, n_clients: int) -> dict:
     schema = SIZES[args.env_size]
     rng = np.random.default_rng(0)
-    pool = [make_episode(schema, 0, i, rng) for i in range(16)]
+    pool = [synthetic_episode(schema, schema.max_t, 0, rng, i) for i in range(16)]
     with tempfile.TemporaryDirectory() as work:
         proc, port = start_server(work, not args.no_fsync, n_clients * args.inserts)
         try:

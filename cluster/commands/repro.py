@@ -36,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="env steps per run (default: configs/envs/matrix.yaml)",
     )
+    _add_run_options(m)
+    m.set_defaults(func=cmd_matrix)
+    register_emcac(rsub)
+
+
+def _add_run_options(m: argparse.ArgumentParser) -> None:
+    """--workers and --set, shared by every experiment."""
     m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
     m.add_argument(
         "--set",
@@ -44,8 +51,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
-    m.set_defaults(func=cmd_matrix)
-    register_emcac(rsub)
 
 
 def register_emcac(rsub: argparse._SubParsersAction) -> None:
@@ -63,14 +68,7 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
         "--t-max", type=int, default=None, help="env steps per run (default: the env's YAML)"
     )
     m.add_argument("--out", required=True, help="output folder")
-    m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
-    m.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override for every run",
-    )
+    _add_run_options(m)
     m.add_argument(
         "--summarise-only",
         action="store_true",
