@@ -42,7 +42,8 @@ LEARNER_KEYS = (
 @dataclass(frozen=True)
 class Curve:
     """Every evaluation of one (algo, env) pair: t_env [K]; won and returns [K][seeds];
-    learner diagnostics at each evaluation (means over seeds, only keys the learner has)."""
+    learner diagnostics at each evaluation (means over seeds and over the updates since the
+    previous evaluation; only keys the learner has)."""
 
     algo: str
     env: str
@@ -75,7 +76,8 @@ def run_pair(
         curve.t_env.append(records[0].t_env)
         curve.won.append([float(r.test_won_mean or 0.0) for r in records])
         curve.returns.append([r.test_return_mean for r in records])
-        diag = {k: v for k, v in trainer.core.last_metrics.items() if k in LEARNER_KEYS}
+        means = trainer.core.take_metric_means()  # over the updates since the last evaluation
+        diag = {k: v for k, v in means.items() if k in LEARNER_KEYS}
         curve.learner.append(diag)
         if path:
             line = {

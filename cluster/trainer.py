@@ -114,7 +114,23 @@ class TrainerCore:
         self.last_save_t = 0
         self.started = time.monotonic()
         self.wall_offset = 0.0
-        self.last_metrics: dict[str, float] = {}
+        self.last_metrics: dict[str, float] = {}  # the latest update's learner metrics
+        self._metric_sums: dict[str, list[float]] = {}  # key -> [sum, count] since `take`
+
+    def record_update(self, metrics: dict[str, float]) -> None:
+        """Keep one update's learner metrics: as the latest, and in the running means that
+        `take_metric_means` hands out."""
+        self.last_metrics = metrics
+        for k, v in metrics.items():
+            acc = self._metric_sums.setdefault(k, [0.0, 0])
+            acc[0] += float(v)
+            acc[1] += 1
+
+    def take_metric_means(self) -> dict[str, float]:
+        """Each learner metric's mean over the updates since the previous call."""
+        means = {k: total / n for k, (total, n) in self._metric_sums.items()}
+        self._metric_sums = {}
+        return means
 
     def local_worker(self, venv, seed: int, actor_id: int = 0) -> RolloutWorker:
         """A worker acting with the learner's own agent module (no weight copy; `follow` keeps
@@ -263,7 +279,7 @@ class LocalTrainer:
             core.episodes += per
             batch, extra = self._sample()
             if batch is not None:
-                core.last_metrics = core.learner.step(batch, extra)
+                core.record_update(core.learner.step(batch, extra))
             core.periodic(on_eval, bar, self.loop_state)
         if bar:
             bar.close()

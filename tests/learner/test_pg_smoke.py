@@ -47,6 +47,20 @@ def test_emcac_with_advantage_norm_trains_and_reports_unit_scale_advantages():
     assert 0.1 < m["advantage_abs_mean"] < 3.0  # unit spread (the mean is not shifted)
 
 
+def test_metric_means_average_every_update_since_the_last_take():
+    cfg = load_train_config("emcac", "matrix/four_game", [], ["run.t_max=200", *SMALL])
+    trainer = LocalTrainer(cfg, n_ensemble=2)
+    seen, step = [], trainer.core.learner.step
+    trainer.core.learner.step = lambda *a: seen.append(step(*a)) or seen[-1]
+    trainer.train()
+    assert len(seen) > 2
+    means = trainer.core.take_metric_means()
+    for key in ("entropy", "kl_masked_fraction", "loss_critic"):
+        assert means[key] == pytest.approx(np.mean([m[key] for m in seen]))
+    assert trainer.core.last_metrics == seen[-1]
+    assert trainer.core.take_metric_means() == {}  # reset by the take
+
+
 def test_train_cli_checkpoint_and_resume_keep_the_target_policy(tmp_path):
     out = tmp_path / "run"
     base = ["train", "--algo", "emcac", "--env", "matrix/four_game", "--out", str(out)]
