@@ -153,8 +153,21 @@ def up(num_cpus: int, port: int = 6379, host: str = LOOPBACK) -> ClusterState:
         )
     state = ClusterState(f"{host}:{port}", num_cpus, pgid)
     state.save()
+    _wait_ready(state.address)
     log.info("Ray head up at %s with %d CPUs", state.address, num_cpus)
     return state
+
+
+def _wait_ready(address: str, timeout_s: float = 60.0) -> None:
+    """Wait until `ray status` reports the head's resources: right after `ray start` it
+    answers "No cluster status" for a few seconds."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        done, _ = _run_ray(["status", "--address", address], timeout=60)
+        if done.returncode == 0 and "No cluster status" not in done.stdout:
+            return
+        time.sleep(1.0)
+    log.warning("Ray head at %s does not report its status after %.0f s", address, timeout_s)
 
 
 def _alive(state: ClusterState) -> bool:
