@@ -163,15 +163,19 @@ def _wait_ready(address: str, timeout_s: float = 60.0) -> None:
     answers "No cluster status" for a few seconds."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        done, _ = _run_ray(["status", "--address", address], timeout=60)
+        done = _ray_status(address)
         if done.returncode == 0 and "No cluster status" not in done.stdout:
             return
         time.sleep(1.0)
     log.warning("Ray head at %s does not report its status after %.0f s", address, timeout_s)
 
 
+def _ray_status(address: str) -> subprocess.CompletedProcess:
+    return _run_ray(["status", "--address", address], timeout=60)[0]
+
+
 def _alive(state: ClusterState) -> bool:
-    return _run_ray(["status", "--address", state.address], timeout=60)[0].returncode == 0
+    return _ray_status(state.address).returncode == 0
 
 
 def status() -> str:
@@ -179,7 +183,7 @@ def status() -> str:
     state = ClusterState.load()
     if state is None:
         return "no credit Ray cluster recorded (start one with `credit cluster up`)"
-    done, _ = _run_ray(["status", "--address", state.address], timeout=60)
+    done = _ray_status(state.address)
     if done.returncode != 0:
         err = done.stderr.strip()[-1000:]
         return f"the recorded cluster at {state.address} does not answer:\n{err}"
