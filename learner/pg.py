@@ -158,8 +158,10 @@ class CACConfig:
         polyak_tau: τ of the target policy π̃ <- (1 - τ) π̃ + τ π after every update.
         kl_granularity: "agent" masks each (step, agent) by that agent's KL; "joint" masks
             whole steps by the joint policy's KL (the sum over agents).
-        advantage_norm: divide the advantages by their standard deviation in each batch
-            (not in the seed; off by default).
+        advantage_norm: divide the advantages by their standard deviation in each batch,
+            so that β weighs the same against the policy gradient on every map (not in the
+            seed; on by default since it made EM-CAC learn skirmish/2s3z and 3s5z, where
+            the raw advantages are 2-2.5x smaller than on 3m: results/pg/README.md).
         agent: the shared agent network.
     """
 
@@ -175,7 +177,7 @@ class CACConfig:
     kl_threshold: float = 0.05
     polyak_tau: float = 0.05
     kl_granularity: Literal["agent", "joint"] = "agent"
-    advantage_norm: bool = False
+    advantage_norm: bool = True
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:

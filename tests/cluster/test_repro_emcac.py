@@ -21,10 +21,14 @@ from cluster.repro_emcac import summarise_curve
                 "mean_win_rate_last10": 4.3 / 9,
                 "steps_to_50": 20,
                 "steps_to_80": 30,
+                "steps_to_50_smoothed": None,  # fewer evaluations than the window
+                "steps_to_80_smoothed": None,
                 "seeds": 3,
             },
         ),
-        # 12 evaluations of one seed: only the last 10 count; the curve never reaches 80%.
+        # 12 evaluations of one seed: only the last 10 count. Two early wins reach 80% on the
+        # raw curve; the first window of 5 is (1 + 1 + 3 x 0.5) / 5 = 0.7 at t=5, so smoothed
+        # it reaches 50% there and never 80%.
         (
             list(range(1, 13)),
             [[1.0], [1.0]] + [[0.5]] * 10,
@@ -33,6 +37,23 @@ from cluster.repro_emcac import summarise_curve
                 "mean_win_rate_last10": 0.5,
                 "steps_to_50": 1,
                 "steps_to_80": 1,
+                "steps_to_50_smoothed": 5,
+                "steps_to_80_smoothed": None,
+                "seeds": 1,
+            },
+        ),
+        # A lucky 0.9 at t=20 is the raw 80%. Windows: (0 + .9 + .6 + .8 + .8) / 5 = 0.62 at
+        # t=50, (.9 + .6 + .8 + .8 + 1) / 5 = 0.82 at t=60.
+        (
+            [10, 20, 30, 40, 50, 60],
+            [[0.0], [0.9], [0.6], [0.8], [0.8], [1.0]],
+            {
+                "median_win_rate_last10": 4.1 / 6,
+                "mean_win_rate_last10": 4.1 / 6,
+                "steps_to_50": 20,
+                "steps_to_80": 20,
+                "steps_to_50_smoothed": 50,
+                "steps_to_80_smoothed": 60,
                 "seeds": 1,
             },
         ),
@@ -44,6 +65,8 @@ from cluster.repro_emcac import summarise_curve
                 "mean_win_rate_last10": 0.375,
                 "steps_to_50": 5,
                 "steps_to_80": None,
+                "steps_to_50_smoothed": None,
+                "steps_to_80_smoothed": None,
                 "seeds": 2,
             },
         ),
@@ -91,7 +114,7 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
         assert 0.0 <= cell["median_win_rate_last10"] <= 1.0
         assert 0.0 <= cell["mean_win_rate_last10"] <= 1.0
         assert cell["seeds"] == 2
-        for k in ("steps_to_50", "steps_to_80"):
+        for k in ("steps_to_50", "steps_to_80", "steps_to_50_smoothed", "steps_to_80_smoothed"):
             assert cell[k] is None or isinstance(cell[k], int)
     assert (out / "emcac_3m.png").stat().st_size > 0
     lines = [json.loads(x) for x in (out / "evals" / "skirmish-3m__emcac.jsonl").open()]

@@ -277,9 +277,11 @@ def test_normalised_advantages_have_unit_spread_on_real_entries_only():
     assert torch.allclose(out[1], torch.tensor([2.0, -2.0, 0.0]) / (8.0 / 3.0) ** 0.5)
 
 
-def test_advantage_norm_is_off_by_default_and_settable():
+@pytest.mark.parametrize("algo", ["cac", "ecac", "mcac", "emcac"])
+def test_advantage_norm_is_on_by_default_and_can_be_turned_off(algo):
     from cluster.run_config import load_train_config
 
-    assert load_train_config("emcac", "skirmish/3m").algo.advantage_norm is False
-    cfg = load_train_config("emcac", "skirmish/3m", [], ["algo.advantage_norm=true"])
-    assert cfg.algo.advantage_norm is True
+    assert CACConfig().advantage_norm is True
+    assert load_train_config(algo, "skirmish/3m").algo.advantage_norm is True
+    cfg = load_train_config(algo, "skirmish/3m", [], ["algo.advantage_norm=false"])
+    assert cfg.algo.advantage_norm is False

@@ -37,9 +37,9 @@ def test_trainer_smoke(name, env):
         assert all(r.test_won_mean is not None for r in records)
 
 
-def test_emcac_with_advantage_norm_trains_and_reports_unit_scale_advantages():
+def test_emcac_normalises_advantages_by_default_to_unit_scale():
     torch.manual_seed(0)
-    overrides = ["run.t_max=600", "algo.advantage_norm=true", *SMALL]
+    overrides = ["run.t_max=600", *SMALL]
     trainer = LocalTrainer(load_train_config("emcac", "skirmish/3m", [], overrides), 2)
     trainer.train()
     m = trainer.core.last_metrics
