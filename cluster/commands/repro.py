@@ -120,7 +120,8 @@ def cmd_emcac(args: argparse.Namespace) -> int:
             print(
                 f"{g:22s} {a:6s} win last10 median {v['median_win_rate_last10']:.2f} "
                 f"mean {v['mean_win_rate_last10']:.2f}  steps to 50% {v['steps_to_50']} "
-                f"to 80% {v['steps_to_80']}"
+                f"to 80% {v['steps_to_80']}  smoothed: to 50% {v['steps_to_50_smoothed']} "
+                f"to 80% {v['steps_to_80_smoothed']}"
             )
     print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
     return 0

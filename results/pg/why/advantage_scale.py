@@ -1,7 +1,8 @@
 """How large the policy-gradient term is against the entropy bonus, per map.
 
-Trains CAC (3 seeds batched, the shipped config) for --t-max env steps on each map and records,
-for every update, the mean |advantage| over real (step, agent) entries and the policy entropy.
+Trains CAC (3 seeds batched, the shipped config with the raw advantages: advantage_norm off)
+for --t-max env steps on each map and records, for every update, the mean |advantage| over
+real (step, agent) entries and the policy entropy.
 The policy loss is -mean(log pi(u) A + beta H): where mean |A| is small next to beta, the
 entropy bonus dominates and the policy drifts towards uniform.
 
@@ -23,6 +24,9 @@ from cluster.trainer import LocalTrainer
 
 def measure(env: str, algo: str, t_max: int, beta: float | None) -> dict:
     overrides = [f"run.t_max={t_max}", "run.test_interval=100000000"]
+    if hasattr(load_train_config(algo, env).algo, "advantage_norm"):  # the CAC family
+        # The raw scale is what is measured: normalised advantages have unit spread.
+        overrides.append("algo.advantage_norm=false")
     if beta is not None:
         overrides.append(f"algo.entropy_coef={beta}")
     cfg = load_train_config(algo, env, [], overrides)
