@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import re
+import sys
 import tempfile
 import threading
 from collections.abc import Iterable, Mapping
@@ -246,6 +247,21 @@ def exposed_names(registry: CollectorRegistry) -> set[str]:
 # ---------------------------------------------------------------- exporter
 
 
+class QuietHTTPServer(ThreadingHTTPServer):
+    """A threading HTTP server for which a client that hangs up before the reply is no error.
+
+    The dashboard gives up on a scrape after 2 s and a browser drops a poll when its page
+    reloads; a busy process then answers into a closed socket. socketserver would print a
+    BrokenPipeError traceback for each; this logs one debug line instead.
+    """
+
+    def handle_error(self, request: object, client_address: tuple) -> None:
+        if isinstance(sys.exc_info()[1], (BrokenPipeError, ConnectionResetError)):
+            log.debug("http %s:%s hung up before the reply", *client_address[:2])
+            return
+        super().handle_error(request, client_address)
+
+
 class _Handler(BaseHTTPRequestHandler):
     registry: CollectorRegistry  # set on the per-server subclass
 
@@ -283,7 +299,7 @@ def serve(registry: CollectorRegistry, port: int = 0, host: str = DEFAULT_HOST) 
     if not 0 <= port <= 65535:
         raise ValueError(f"port must be in 0..65535, got {port}")
     handler = type("MetricsHandler", (_Handler,), {"registry": registry})
-    server = ThreadingHTTPServer((host, port), handler)
+    server = QuietHTTPServer((host, port), handler)
     server.daemon_threads = True
     bound = (host, int(server.server_address[1]))
     thread = threading.Thread(target=server.serve_forever, name=f"metrics-{bound[1]}", daemon=True)

@@ -20,13 +20,14 @@ import time
 import urllib.parse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 from typing import Any, Protocol
 
 from cluster.config import ConfigError
 from cluster.dashboard import local
 from cluster.dashboard.panels import PANELS, Panel
+from cluster.metrics import QuietHTTPServer
 from cluster.prometheus import query_range
 
 log = logging.getLogger(__name__)
@@ -240,7 +241,7 @@ class DashboardServer:
     def __init__(self, cfg: DashboardConfig, source: Source) -> None:
         cfg.validate()
         handler = type("DashboardHandler", (_Handler,), {"source": source, "cfg": cfg})
-        self.httpd = ThreadingHTTPServer((cfg.host, cfg.port), handler)
+        self.httpd = QuietHTTPServer((cfg.host, cfg.port), handler)
         self.httpd.daemon_threads = True
         self.source = source
         self.url = f"http://{cfg.host}:{self.httpd.server_address[1]}/"

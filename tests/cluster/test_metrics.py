@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import json
+import socket
+import struct
+import threading
 import urllib.request
 
 import pytest
+from prometheus_client import CollectorRegistry, Gauge
 from prometheus_client.parser import text_string_to_metric_families
 
 from cluster import metrics as m
@@ -63,6 +67,41 @@ def test_several_exporters_in_one_process_count_separately():
     finally:
         for ep in eps:
             m.stop(ep)
+
+
+class _SlowCollector:
+    """Holds a scrape until the test lets it go (a busy process answering late)."""
+
+    def __init__(self):
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def collect(self):
+        self.entered.set()
+        self.release.wait(10)
+        return []
+
+
+def test_a_scraper_that_hangs_up_early_is_no_error_and_the_exporter_keeps_serving(capsys):
+    # The dashboard gives up on a scrape after 2 s; an actor busy with its envs can answer
+    # later, into a closed socket. That used to print a BrokenPipeError traceback per scrape.
+    registry = CollectorRegistry()
+    Gauge("credit_probe", "probe", registry=registry).set(3)
+    slow = _SlowCollector()
+    registry.register(slow)
+    ep = m.serve(registry)
+    try:
+        client = socket.create_connection(ep, timeout=5)
+        client.sendall(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert slow.entered.wait(5)
+        # close with RST (linger 0), so the exporter's writes fail at once
+        client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        client.close()
+        registry.unregister(slow)
+        slow.release.set()
+        assert scrape(ep)[("credit_probe", ())] == 3
+    finally:
+        m.stop(ep)
+    assert "Traceback" not in capsys.readouterr().err
 
 
 def test_learner_records_updates_lag_tests_and_restarts():
