@@ -15,12 +15,15 @@ Rate and threshold (the seed gives neither): τ = 0.05 and K = 0.05 by default. 
 mean age is (1 - τ) / τ ≈ 19 updates, two to three lifetimes of an episode in the cycling buffer
 (32 episodes, 4 new per step: 8 updates), so π̃ averages the policies that produced the data
 being reused plus a little history, and KL(π || π̃) measures drift on the timescale of reuse.
-Measured with the mask off on skirmish/3m (3 seeds, E-CAC data flow): with τ = 0.05 the KL's
-90th percentile was 0.06 during the fast early learning (~10k steps) and 0.005-0.02 later,
-with a 99th percentile of 0.03-0.25, so K = 0.05 trims about a tenth of the steps early on and
-only the tail afterwards. τ = 0.01 (a ~100-update average) lagged so far behind early learning
-that the KL's median was 0.26 at 10k steps; with K = 0.02 it masked 54% of the steps and
-stalled the actors (measured, not kept).
+Measured with the mask off on skirmish/3m (3 seeds, E-CAC data flow, plain advantages, before
+advantage normalisation became the default): with τ = 0.05 the KL's 90th percentile was 0.06
+during the fast early learning (~10k steps) and 0.005-0.02 later, with a 99th percentile of
+0.03-0.25, so K = 0.05 trims about a tenth of the steps early on and only the tail
+afterwards. τ = 0.01 (a ~100-update average) lagged so far behind early learning that the
+KL's median was 0.26 at 10k steps; with K = 0.02 it masked 54% of the steps and stalled the
+actors (measured, not kept). With normalised advantages the mask dropped 0.6-27% of the
+timesteps on 3m and 0-25% on 2s3z and 3s5z (the masked fraction at each evaluation in
+results/pg/3m and results/pg/protoss).
 
 All functions are pure and work on any leading shape [...] with a trailing action axis A.
 """

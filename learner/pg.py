@@ -5,7 +5,8 @@ are trained by the policy gradient -log π(u_t^i | τ_t^i) A_t - β H(π(· | τ
 central critic V(x_t), an MLP 64-64-1 over the joint observation x_t = (o_t^1, ..., o_t^N)
 (the seed's critic never sees the state; `critic_input` can add it for comparison). The critic
 regresses onto TD(λ) returns G_t built from a target critic copied every
-`target_update_interval` updates; the advantage is A_t = G_t - V(x_t), shared by every agent.
+`target_update_interval` updates; the advantage is A_t = G_t - V(x_t), shared by every agent,
+divided by its standard deviation in the batch (`advantage_norm`, the default; not in the seed).
 
     cac    fresh episodes only (the trainer's data plan hands over the newest run.num_envs)
     ecac   + the semi-online cycling buffer (main batch = the last 32 episodes, each used
