@@ -264,23 +264,41 @@ def start(cfg: PrometheusConfig) -> PrometheusState:
     return state
 
 
+def _gone(pid: int) -> bool:
+    """Whether `pid` has exited; reaps it when it is this process's child (a zombie child
+    still answers os.kill, so `credit metrics down` in the process that started Prometheus,
+    as in the tests, must reap it)."""
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] == pid
+    except ChildProcessError:  # not our child: its parent reaps it
+        return not _alive(pid)
+
+
+def _wait_gone(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not _gone(pid):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
 def _terminate(pid: int, grace_s: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL after `grace_s`; returns once the process is gone (and reaped
+    when it is our child)."""
     try:
         os.kill(pid, signal.SIGTERM)
     except ProcessLookupError:
         return
-    deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline:
-        try:  # reap it when it is our child; otherwise just poll
-            if os.waitpid(pid, os.WNOHANG)[0] == pid:
-                return
-        except ChildProcessError:
-            pass
-        if not _alive(pid):
-            return
-        time.sleep(0.1)
+    if _wait_gone(pid, grace_s):
+        return
     log.warning("prometheus (pid %d) ignored SIGTERM for %.0fs; killing it", pid, grace_s)
-    os.kill(pid, signal.SIGKILL)
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        return
+    if not _wait_gone(pid, 10.0):
+        log.warning("prometheus (pid %d) still there 10 s after SIGKILL", pid)
 
 
 def stop(state_dir: str | Path = "") -> PrometheusState | None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 
 import pytest
 import yaml
@@ -110,3 +112,22 @@ def test_query_reports_a_bad_expression(tmp_path):
         assert prom.query(state.url, "credit_env_steps_total") == []
     finally:
         prom.stop(tmp_path)
+
+
+@pytest.mark.parametrize("ignores_sigterm", [False, True])
+def test_terminate_returns_only_once_the_child_is_gone_and_reaped(ignores_sigterm):
+    # `credit metrics down` in the process that started Prometheus (as in the tests above):
+    # a child that has exited but is not reaped still answers os.kill(pid, 0).
+    code = "import signal, time\n"
+    if ignores_sigterm:
+        code += "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+    code += "print('ready', flush=True)\ntime.sleep(60)\n"
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        prom._terminate(child.pid, grace_s=0.5)
+        with pytest.raises(ProcessLookupError):
+            os.kill(child.pid, 0)
+    finally:
+        if child.returncode is None and prom._alive(child.pid):
+            child.kill()
