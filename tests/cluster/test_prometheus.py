@@ -131,3 +131,4 @@ def test_terminate_returns_only_once_the_child_is_gone_and_reaped(ignores_sigter
     finally:
         if child.returncode is None and prom._alive(child.pid):
             child.kill()
+        child.stdout.close()
