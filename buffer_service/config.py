@@ -51,10 +51,11 @@ class TableConfig:
     Attributes:
         name: table name clients sample from.
         kind: ``cycling`` (FIFO; each episode sampled at most ``max_times_sampled`` times,
-            then removed; a batch never repeats an episode) or ``replay`` (uniform with
-            replacement).
+            then removed; a batch never repeats an episode) or ``replay`` (uniform).
         capacity: episodes held; the oldest is dropped on overflow (both kinds).
         max_times_sampled: K for ``cycling`` (0 = unlimited); ignored for ``replay``.
+        replacement: ``replay`` only: a batch may repeat an episode (True) or never does
+            (False; a batch then needs at least as many episodes held as it asks for).
         rate_limiter: sample/insert back-pressure of this table.
     """
 
@@ -62,6 +63,7 @@ class TableConfig:
     kind: str = "cycling"
     capacity: int = 32
     max_times_sampled: int = 8
+    replacement: bool = True
     rate_limiter: RateLimiterConfig = field(default_factory=RateLimiterConfig)
 
     def validate(self) -> None:

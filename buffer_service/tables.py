@@ -87,14 +87,20 @@ class Table:
     def ready(self, n: int) -> bool:
         """Can a batch of `n` be sampled now (limiter and, for cycling, enough episodes)?"""
         size = len(self.order)
-        if size == 0 or (self.cfg.kind == "cycling" and size < n):
+        if size == 0 or (self.distinct and size < n):
             return False
         return self.limiter.can_sample(n, size)
 
+    @property
+    def distinct(self) -> bool:
+        """Does a batch hold distinct episodes (cycling, or replay without replacement)?"""
+        return self.cfg.kind == "cycling" or not self.cfg.replacement
+
     def choose(self, n: int, rng: random.Random) -> list[Key]:
-        """Pick `n` keys: cycling without replacement, replay uniformly with replacement."""
+        """Pick `n` keys uniformly: without replacement for cycling tables and replay tables
+        with `replacement` off, with replacement otherwise."""
         size = len(self.order)
-        if self.cfg.kind == "cycling":
+        if self.distinct:
             idx = rng.sample(range(size), n)
         else:
             idx = [rng.randrange(size) for _ in range(n)]

@@ -182,7 +182,7 @@ class ClusterTrainer:
             if pair is not None:
                 batch, extra = pair
                 started = time.perf_counter()
-                core.record_update(core.learner.step(batch, extra))
+                core.update(batch, extra)
                 seconds = time.perf_counter() - started
                 self.stats.updates += 1
                 self.stats.update_s += seconds

@@ -21,7 +21,6 @@ from actors.rollout import RolloutWorker, clock_seq
 from buffer_service.client import BufferClient, RateLimitedError
 from cluster.metrics import ActorMetrics, serve
 from cluster.run_config import build_train_config
-from learner.networks import AgentNet
 
 log = logging.getLogger(__name__)
 
@@ -86,14 +85,7 @@ class RolloutActor:
         seed = run.seed + 1000 * (actor_id + 1) + int(time.time()) % 1000
         venv = make_vec_env(cfg.env.id, run.num_envs, seed=seed, **cfg.env.args)
         info = venv.info
-        agent = cfg.algo.agent
-        net = AgentNet(
-            1,
-            info.obs_shape + info.n_actions + info.n_agents,
-            info.n_actions,
-            agent.hidden,
-            agent.fc,
-        )
+        net = cfg.algo.agent.build(1, info.schema())
         from learner.registry import get_algo
 
         kind = "softmax" if get_algo(cfg.algo_name).family == "pg" else "q"

@@ -11,6 +11,7 @@ import itertools
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 
 from actors.envs.registry import make_env
 from buffer_service.episode import Episode, EpisodeBatch
@@ -89,4 +90,79 @@ def _cell(joint: tuple[int, int], q: torch.Tensor, share: torch.Tensor) -> dict:
         "joint_action": list(joint),
         "critic_q": round(float(q), 3),
         "relevance": [round(float(s), 3) for s in share],
+    }
+
+
+def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -> dict:
+    """How much each agent's LRP target moves with its own action, against how much the
+    critic's value moves, and against how much the target moves with its own observations.
+
+    For every real transition and agent i (alive or not), agent i's action is replaced by each
+    other action available to it, everything else fixed: dq = Q_c(x') - Q_c(x) and
+    dr = R_i(x') - R_i(x). Separately agent i's observation window is replaced by agent i's
+    window from another, random transition of the batch (its action kept): do = R_i(x'') - R_i(x).
+    A split that credits agents for their own actions has dr close to dq.
+
+    Returns means over members, transitions and agents: `mean_abs_dq`, `mean_abs_dr`,
+    `mean_abs_dr_obs`, `slope_dr_on_dq` (least squares), `sign_agreement` (share of swaps with
+    |dq| > 0.01 where dr has dq's sign), `argmax_agreement` (share of (transition, agent) where
+    the action maximising R_i is the one maximising Q_c), `swaps`.
+    """
+    tb = TensorBatch.from_episodes(batch)
+    e, b, t, n = tb.shape
+    a_n = learner.info.n_actions
+    cfg = learner.cfg
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        hist = obs_history(tb.obs, cfg.obs_window)[:, :, :-1]  # [E, B, T, N, W*O]
+        avail = tb.avail[:, :, :-1]
+        real = tb.mask.bool()
+
+        def split(h: torch.Tensor, acts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            x = learner.critic_inputs(h, acts)
+            rel, q = lrp_epsilon(learner.critic, x, cfg.lrp_eps, cfg.lrp_rule)
+            return agent_relevance(rel, n).view(e, b, t, n), q.view(e, b, t)
+
+        r0, q0 = split(hist, tb.actions)
+        dq_all, dr_all, agree_arg = [], [], []
+        for i in range(n):
+            rs, qs = [], []
+            for a in range(a_n):
+                acts = tb.actions.clone()
+                acts[..., i] = a
+                r, q = split(hist, acts)
+                rs.append(r[..., i])
+                qs.append(q)
+            rs_t, qs_t = torch.stack(rs, -1), torch.stack(qs, -1)  # [E, B, T, A]
+            ok = avail[..., i, :] & real.unsqueeze(-1)
+            own = F.one_hot(tb.actions[..., i], a_n).bool()
+            swap = ok & ~own
+            dq_all.append((qs_t - q0.unsqueeze(-1))[swap])
+            dr_all.append((rs_t - r0[..., i].unsqueeze(-1))[swap])
+            choosable = ok.sum(-1) > 1
+            best_q = qs_t.masked_fill(~ok, -1e10).argmax(-1)
+            best_r = rs_t.masked_fill(~ok, -1e10).argmax(-1)
+            agree_arg.append((best_q == best_r)[choosable].float())
+        dq, dr = torch.cat(dq_all), torch.cat(dr_all)
+        flat = hist.reshape(e, b * t, n, -1)
+        perm = torch.randperm(b * t, generator=gen)
+        do_all = []
+        for i in range(n):
+            h2 = flat.clone()
+            h2[:, :, i] = flat[:, perm, i]
+            r2, _ = split(h2.view_as(hist), tb.actions)
+            do_all.append((r2[..., i] - r0[..., i])[real])
+        do = torch.cat(do_all)
+    big = dq.abs() > 0.01
+    slope = float((dq * dr).sum() / (dq * dq).sum().clamp_min(1e-12))
+    return {
+        "mean_abs_dq": float(dq.abs().mean()),
+        "mean_abs_dr": float(dr.abs().mean()),
+        "mean_abs_dr_obs": float(do.abs().mean()),
+        "slope_dr_on_dq": slope,
+        "sign_agreement": float((torch.sign(dr[big]) == torch.sign(dq[big])).float().mean())
+        if big.any()
+        else None,
+        "argmax_agreement": float(torch.cat(agree_arg).mean()),
+        "swaps": int(dq.numel()),
     }

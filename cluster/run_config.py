@@ -40,14 +40,24 @@ class ReplayConfig:
     Attributes:
         capacity: episodes kept (oldest dropped).
         batch_size: episodes per update.
+        updates_per_episode: learner updates per inserted episode (the replay ratio; PyMARL's
+            1: a batch of batch_size per new episode). The same in `--mode local` and
+            `--mode cluster` for any number of actors and any run.num_envs: the buffer's
+            sample-to-insert limiter enforces it in cluster mode.
+        with_replacement: a batch may hold one episode twice (uniform with replacement) or
+            not (PyMARL's sampling).
     """
 
     capacity: int = 1000
     batch_size: int = 32
+    updates_per_episode: float = 1.0
+    with_replacement: bool = True
 
     def validate(self) -> None:
         if self.capacity < 1 or self.batch_size < 1:
             raise ValueError("capacity and batch_size must be >= 1")
+        if not self.updates_per_episode > 0:
+            raise ValueError(f"updates_per_episode must be > 0, got {self.updates_per_episode}")
         if self.batch_size > self.capacity:
             raise ValueError(f"batch_size={self.batch_size} exceeds capacity={self.capacity}")
 
@@ -248,6 +258,7 @@ class DataPlan:
     Attributes:
         tables: the tables to create (in process or in the buffer service).
         table: the table of the main batch; batch_size its size.
+        updates_per_episode: learner steps per inserted episode (per ensemble member).
         extra_table: a second batch's table (E-CAC's off-policy critic pass), or None.
         extra_batch_size: that batch's size.
     """
@@ -255,6 +266,7 @@ class DataPlan:
     tables: tuple[TableConfig, ...]
     table: str
     batch_size: int
+    updates_per_episode: float
     extra_table: str | None = None
     extra_batch_size: int = 0
 
@@ -262,41 +274,48 @@ class DataPlan:
 def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
     """Tables and batches for `cfg`'s algorithm family.
 
-    value family: uniform `replay` (replay.capacity), batches of replay.batch_size.
+    value family: `replay` (replay.capacity), batches of replay.batch_size,
+        replay.updates_per_episode learner steps per inserted episode.
     policy gradient, on-policy (cac, mcac, coma): `cycling` holding exactly the newest
-        run.num_envs episodes, each used once.
+        run.num_envs episodes, each used once: one step per round of run.num_envs episodes.
     policy gradient, extended (ecac, emcac): `cycling` of cycling.capacity episodes, each
         used capacity / num_envs times, plus a `replay` batch for the extra critic pass.
-    Every table gets a sample-to-insert limiter at the ratio a one-process run has (one
-    learner step per round of run.num_envs episodes), so `--mode cluster` keeps the same
-    update-to-data ratio; `actors` x cluster.rate_slack rounds may be in flight.
+    Every table gets a sample-to-insert limiter at that ratio, so `--mode cluster` keeps the
+    same update-to-data ratio as a one-process run; `actors` x cluster.rate_slack rounds may
+    be in flight.
     """
     spec = get_algo(cfg.algo_name)
     n_new = cfg.run.num_envs
     slack = actors * cfg.cluster.rate_slack * n_new
+    rp = cfg.replay
 
-    def limiter(batch: int, min_size: int) -> RateLimiterConfig:
-        spi = batch / n_new
+    def limiter(spi: float, min_size: int, batch: int) -> RateLimiterConfig:
         return RateLimiterConfig(
             min_size_to_sample=min_size,
             samples_per_insert=spi,
             error_buffer=max(batch, spi * slack),
         )
 
-    bs = cfg.replay.batch_size
+    bs = rp.batch_size
+    value = spec.family == "value"
+    replay_spi = bs * rp.updates_per_episode if value else bs / n_new
     replay = TableConfig(
-        name="replay", kind="replay", capacity=cfg.replay.capacity, rate_limiter=limiter(bs, bs)
+        name="replay",
+        kind="replay",
+        capacity=rp.capacity,
+        replacement=rp.with_replacement,
+        rate_limiter=limiter(replay_spi, bs, bs),
     )
-    if spec.family == "value":
-        return DataPlan((replay,), "replay", bs)
+    if value:
+        return DataPlan((replay,), "replay", bs, rp.updates_per_episode)
     capacity = cfg.cycling.capacity if spec.extended else n_new
     cycling = TableConfig(
         name="cycling",
         kind="cycling",
         capacity=capacity,
         max_times_sampled=max(1, capacity // n_new),
-        rate_limiter=limiter(capacity, capacity),
+        rate_limiter=limiter(capacity / n_new, capacity, capacity),
     )
     if not spec.extended:
-        return DataPlan((cycling,), "cycling", capacity)
-    return DataPlan((cycling, replay), "cycling", capacity, "replay", bs)
+        return DataPlan((cycling,), "cycling", capacity, 1 / n_new)
+    return DataPlan((cycling, replay), "cycling", capacity, 1 / n_new, "replay", bs)

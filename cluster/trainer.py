@@ -126,6 +126,13 @@ class TrainerCore:
             acc[0] += float(v)
             acc[1] += 1
 
+    def update(self, batch: EpisodeBatch, extra: EpisodeBatch | None) -> dict[str, float]:
+        """One learner step, then the episode-counted target refresh; returns its metrics."""
+        metrics = self.learner.step(batch, extra)
+        self.learner.sync_targets(self.episodes)
+        self.record_update(metrics)
+        return metrics
+
     def take_metric_means(self) -> dict[str, float]:
         """Each learner metric's mean over the updates since the previous call."""
         means = {k: total / n for k, (total, n) in self._metric_sums.items()}
@@ -262,14 +269,19 @@ class LocalTrainer:
         self.buffers = [
             LocalBuffer(core.plan.tables, seed=run.seed * 1000 + k) for k in range(n_ensemble)
         ]
+        self.update_credit = 0.0  # learner steps owed to the episodes inserted so far
 
     def train(
-        self, on_eval: Callable[[list[EvalRecord]], None] | None = None, progress: bool = False
+        self,
+        on_eval: Callable[[list[EvalRecord]], None] | None = None,
+        progress: bool = False,
+        stop: Callable[[], bool] | None = None,
     ) -> None:
-        """Train until t_env >= t_max, evaluating every test_interval env steps."""
+        """Train until t_env >= t_max (or `stop()` is true), evaluating every test_interval
+        env steps."""
         core, run = self.core, self.core.cfg.run
         bar = Progress(run.t_max) if progress else None
-        while core.t_env < run.t_max:
+        while core.t_env < run.t_max and not (stop and stop()):
             self.worker.follow(core.learner.updates)
             result = self.worker.run_round(t_env=core.t_env)
             per = run.num_envs
@@ -277,9 +289,17 @@ class LocalTrainer:
                 buf.insert(result.episodes[k * per : (k + 1) * per])
             core.t_env += result.env_steps // self.E
             core.episodes += per
-            batch, extra = self._sample()
-            if batch is not None:
-                core.record_update(core.learner.step(batch, extra))
+            # plan.updates_per_episode steps per new episode once the tables can serve a
+            # batch; steps owed while they could not are dropped, not caught up (PyMARL's
+            # warm-up), and a fraction carries over to the next round.
+            self.update_credit += per * core.plan.updates_per_episode
+            while self.update_credit >= 1.0:
+                batch, extra = self._sample()
+                if batch is None:
+                    self.update_credit = 0.0
+                    break
+                self.update_credit -= 1.0
+                core.update(batch, extra)
             core.periodic(on_eval, bar, self.loop_state)
         if bar:
             bar.close()
@@ -311,6 +331,7 @@ class LocalTrainer:
             "worker_rng": self.worker.gen.get_state(),
             "buffer_rng": [b.rng_state() for b in self.buffers],
             "episode_seq": self.worker.episode_seq,
+            "update_credit": self.update_credit,
         }
 
     def save(self, path: Path) -> None:
@@ -322,6 +343,7 @@ class LocalTrainer:
         for buf, rng in zip(self.buffers, state["buffer_rng"], strict=True):
             buf.set_rng_state(rng)
         self.worker.episode_seq = state["episode_seq"]
+        self.update_credit = state.get("update_credit", 0.0)
 
 
 def write_json(path: Path, obj: dict) -> None:

@@ -29,7 +29,7 @@ from torch.nn import functional as F
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, masked_mean
 from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
-from learner.networks import MLP, AgentNet, unroll
+from learner.networks import MLP, unroll
 from learner.pg import (
     masked_log_policy,
     policy_entropy,
@@ -99,8 +99,7 @@ class COMALearner(AgentCriticLearner):
     ):
         self.cfg, self.info, self.n_ensemble, self.device = cfg, info, n_ensemble, device
         n, a = info.n_agents, info.n_actions
-        self.agent = AgentNet(n_ensemble, info.obs_dim + a + n, a, cfg.agent.hidden, cfg.agent.fc)
-        self.agent.to(device)
+        self.agent = cfg.agent.build(n_ensemble, info).to(device)
         in_dim = info.state_dim + info.obs_dim + 2 * n * a + n
         self.critic = MLP(n_ensemble, in_dim, tuple(cfg.critic_hidden), a).to(device)
         self.target_critic = TargetNet(self.critic, cfg.target_update_interval)

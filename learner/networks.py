@@ -58,7 +58,9 @@ class EnsembleGRUCell(nn.Module):
 
 
 class AgentNet(nn.Module):
-    """The shared DRQN agent: GRU(hidden) -> FC(fc) -> FC(fc) -> n_actions.
+    """The shared agent: GRU(hidden) -> FC(fc) -> FC(fc) -> n_actions (DRQN, the seed's), or
+    with `recurrent=False` FC(hidden) -> FC(fc) -> FC(fc) -> n_actions (feed-forward; the
+    hidden state passes through unchanged, so callers treat both alike).
 
     Input per agent: own observation, last action one-hot, agent id one-hot. Parameters are
     shared by all agents (the agent axis is folded into M). The head gives Q-values for the
@@ -68,11 +70,20 @@ class AgentNet(nn.Module):
     """
 
     def __init__(
-        self, n_ensemble: int, input_dim: int, n_actions: int, hidden: int = 64, fc: int = 32
+        self,
+        n_ensemble: int,
+        input_dim: int,
+        n_actions: int,
+        hidden: int = 64,
+        fc: int = 32,
+        recurrent: bool = True,
     ):
         super().__init__()
-        self.hidden = hidden
-        self.gru = EnsembleGRUCell(n_ensemble, input_dim, hidden)
+        self.hidden, self.recurrent = hidden, recurrent
+        if recurrent:
+            self.gru = EnsembleGRUCell(n_ensemble, input_dim, hidden)
+        else:
+            self.inp = EnsembleLinear(n_ensemble, input_dim, hidden)
         self.fc1 = EnsembleLinear(n_ensemble, hidden, fc)
         self.fc2 = EnsembleLinear(n_ensemble, fc, fc)
         self.out = EnsembleLinear(n_ensemble, fc, n_actions)
@@ -80,11 +91,17 @@ class AgentNet(nn.Module):
     def init_hidden(self, n_ensemble: int, m: int) -> torch.Tensor:
         return self.out.weight.new_zeros(n_ensemble, m, self.hidden)
 
-    def forward(self, inputs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.gru(inputs, h)
-        x = F.relu(self.fc1(h))
+    def head(self, x: torch.Tensor) -> torch.Tensor:
+        """Everything after the GRU (or after the feed-forward input layer)."""
+        x = F.relu(self.fc1(x))
         x = F.relu(self.fc2(x))
-        return self.out(x), h
+        return self.out(x)
+
+    def forward(self, inputs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if not self.recurrent:
+            return self.head(F.relu(self.inp(inputs))), h
+        h = self.gru(inputs, h)
+        return self.head(h), h
 
 
 class MLP(nn.Module):
@@ -161,11 +178,15 @@ def clip_grad_norm_per_member(params: list[nn.Parameter], max_norm: float) -> to
 
 
 def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
-    """Run the recurrent agent over whole episodes from a zero hidden state.
+    """Run the agent over whole episodes: recurrent from a zero hidden state, step by step;
+    feed-forward in one call over every step.
 
     Shapes: inputs [E, B, T', N, D] -> outputs [E, B, T', N, A].
     """
     e, b, tp, n, d = inputs.shape
+    if not agent.recurrent:
+        out = agent.head(F.relu(agent.inp(inputs.reshape(e, b * tp * n, d))))
+        return out.view(e, b, tp, n, -1)
     h = agent.init_hidden(e, b * n)
     outs = []
     for t in range(tp):

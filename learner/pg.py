@@ -221,10 +221,8 @@ class CACLearner(AgentCriticLearner):
     ):
         self.cfg, self.info, self.extended, self.masked = cfg, info, extended, masked
         self.n_ensemble, self.device = n_ensemble, device
-        n, a = info.n_agents, info.n_actions
-        self.agent = AgentNet(
-            n_ensemble, info.obs_dim + a + n, a, cfg.agent.hidden, cfg.agent.fc
-        ).to(device)
+        n = info.n_agents
+        self.agent = cfg.agent.build(n_ensemble, info).to(device)
         in_dim = {"obs": n * info.obs_dim, "state": info.state_dim}.get(
             cfg.critic_input, n * info.obs_dim + info.state_dim
         )

@@ -23,10 +23,18 @@ from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, masked_mean, obs_history
-from learner.common import AgentConfig, AgentCriticLearner, TargetNet, Updater
+from learner.common import (
+    AgentConfig,
+    AgentCriticLearner,
+    EpisodeClock,
+    RewardNorm,
+    TargetNet,
+    Updater,
+    validate_value_schedule,
+)
 from learner.lrp import LRP_RULES, agent_relevance, lrp_epsilon
-from learner.networks import MLP, AgentNet, unroll
-from learner.targets import td_targets
+from learner.networks import MLP, unroll
+from learner.targets import q_lambda_targets
 
 
 @dataclass(frozen=True)
@@ -35,9 +43,13 @@ class RDNConfig:
 
     Attributes:
         gamma: discount.
-        lr: Adam learning rate of the agents and of the critic.
+        lr: learning rate of the agents and of the critic.
         grad_norm_clip: per-seed gradient norm clip.
-        target_update_interval: critic updates between hard copies into the target critic.
+        target_update_episodes: inserted episodes between hard copies into the target critic
+            (as the value family's).
+        optimiser: "adam" or "rmsprop".
+        reward_norm: "off", "scale" or "standardise" (as the value family's).
+        td_lambda: λ of the critic's Q(λ) targets (0: one-step TD).
         critic_hidden: hidden widths of the central critic MLP.
         obs_window: how many of each agent's latest observations the critic sees.
         lrp_rule: relevance rule, one of learner.lrp.LRP_RULES.
@@ -50,7 +62,10 @@ class RDNConfig:
     gamma: float = 0.99
     lr: float = 5e-4
     grad_norm_clip: float = 10.0
-    target_update_interval: int = 200
+    target_update_episodes: int = 200
+    optimiser: Literal["adam", "rmsprop"] = "adam"
+    reward_norm: Literal["off", "scale", "standardise"] = "off"
+    td_lambda: float = 0.0
     critic_hidden: tuple[int, ...] = (64, 64)
     obs_window: int = 4
     lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
@@ -60,12 +75,18 @@ class RDNConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
-        for name in ("lr", "grad_norm_clip", "lrp_eps"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("target_update_interval", "obs_window", "joint_max_limit"):
+        validate_value_schedule(
+            self.gamma,
+            self.lr,
+            self.grad_norm_clip,
+            self.target_update_episodes,
+            self.optimiser,
+            self.reward_norm,
+            self.td_lambda,
+        )
+        if self.lrp_eps <= 0:
+            raise ValueError(f"lrp_eps must be > 0, got {self.lrp_eps}")
+        for name in ("obs_window", "joint_max_limit"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.critic_hidden or min(self.critic_hidden) < 1:
@@ -98,17 +119,25 @@ class RDNLearner(AgentCriticLearner):
                 f"(> joint_max_limit={cfg.joint_max_limit}); use next_action=greedy"
             )
         self.block = cfg.obs_window * info.obs_dim + a + n
-        in_dim = info.obs_dim + a + n
-        self.agent = AgentNet(n_ensemble, in_dim, a, cfg.agent.hidden, cfg.agent.fc).to(device)
+        self.agent = cfg.agent.build(n_ensemble, info).to(device)
         self.critic = MLP(n_ensemble, n * self.block, tuple(cfg.critic_hidden), 1).to(device)
-        self.target_critic = TargetNet(self.critic, cfg.target_update_interval)
+        self.target_critic = TargetNet(self.critic, cfg.target_update_episodes)
+        self.clock = EpisodeClock(cfg.target_update_episodes)
+        self.reward_norm = RewardNorm(cfg.reward_norm, n_ensemble, device)
         self.critic_updater = Updater(
-            list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic"
+            list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic", cfg.optimiser
         )
         self.agent_updater = Updater(
-            list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent"
+            list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent", cfg.optimiser
         )
         self.updates = 0
+
+    def sync_targets(self, episodes: int) -> bool:
+        """Copy the critic into the target critic every target_update_episodes episodes."""
+        if not self.clock.due(episodes):
+            return False
+        self.target_critic.copy_now()
+        return True
 
     def critic_inputs(self, hist: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Per-agent blocks [history, action one-hot, id one-hot] laid end to end.
@@ -149,7 +178,10 @@ class RDNLearner(AgentCriticLearner):
         x = self.critic_inputs(hist[:, :, :-1], tb.actions)
         with torch.no_grad():
             v_next = self._next_value(hist[:, :, 1:], qs.detach()[:, :, 1:], tb.avail[:, :, 1:])
-            y = td_targets(tb.reward, tb.terminated, v_next, self.cfg.gamma)
+            reward = self.reward_norm(tb.reward, tb.mask)
+            y = q_lambda_targets(
+                reward, tb.terminated, tb.mask, v_next, self.cfg.gamma, self.cfg.td_lambda
+            )
         q_c = self.critic(x).view(e, b, t)
         critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
         self.critic_updater.apply(critic_loss)
@@ -162,7 +194,6 @@ class RDNLearner(AgentCriticLearner):
         self.agent_updater.apply(agent_loss)
 
         self.updates += 1
-        self.target_critic.maybe_update(self.updates)
         gap = (targets.sum(-1) - q_tot.view(e, b, t)).abs()
         return {
             "loss_critic": float(critic_loss.detach().mean()),
@@ -170,3 +201,15 @@ class RDNLearner(AgentCriticLearner):
             "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), tb.mask).mean()),
             "lrp_conservation_gap": float(masked_mean(gap, tb.mask).mean()),
         }
+
+    def state_dict(self) -> dict:
+        return {
+            **super().state_dict(),
+            "target_epoch": self.clock.epoch,
+            "reward_norm": self.reward_norm.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        self.clock.epoch = int(state["target_epoch"])
+        self.reward_norm.load_state_dict(state["reward_norm"])

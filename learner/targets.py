@@ -54,3 +54,23 @@ def lambda_returns(
         out[..., t] = g * m
         g_next = torch.where(m > 0, g, g_next)
     return out
+
+
+def q_lambda_targets(
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    mask: torch.Tensor,
+    next_value: torch.Tensor,
+    gamma: float,
+    lam: float,
+) -> torch.Tensor:
+    """Q(λ) targets from the next states' target values: one-step TD when λ = 0, else the
+    λ-return over them (`lambda_returns`, as PyMARL2's TD(λ) QMIX builds it).
+
+    Shapes: reward, terminated, mask, next_value [..., T] -> [..., T] (padded steps: 0 when
+    λ > 0, unmasked one-step values when λ = 0; losses mask them either way).
+    """
+    if lam == 0.0:
+        return td_targets(reward, terminated, next_value, gamma)
+    values = torch.cat([torch.zeros_like(next_value[..., :1]), next_value], dim=-1)
+    return lambda_returns(reward, terminated, mask, values, gamma, lam)

@@ -17,9 +17,16 @@ import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_inputs, joint_obs, masked_mean
-from learner.common import AgentConfig, TargetNet, Updater
-from learner.networks import AgentNet, QMixer, VersionedWeights, unroll
-from learner.targets import td_targets
+from learner.common import (
+    AgentConfig,
+    EpisodeClock,
+    RewardNorm,
+    TargetNet,
+    Updater,
+    validate_value_schedule,
+)
+from learner.networks import QMixer, VersionedWeights, unroll
+from learner.targets import q_lambda_targets
 
 Mixing = Literal["none", "sum", "qmix", "qmix_ns"]
 
@@ -30,9 +37,15 @@ class ValueConfig:
 
     Attributes:
         gamma: discount.
-        lr: Adam learning rate.
+        lr: learning rate.
         grad_norm_clip: per-seed gradient norm clip.
-        target_update_interval: updates between hard target-network copies.
+        target_update_episodes: inserted episodes between hard target-network copies
+            (counted in episodes, so independent of actors, num_envs and the update rate;
+            PyMARL's 200).
+        optimiser: "adam" or "rmsprop" (PyMARL's α 0.99, ε 1e-5).
+        reward_norm: "off", "scale" (divide by the running std) or "standardise" (also
+            subtract the running mean; EPyMARL's standardise_rewards).
+        td_lambda: λ of the Q(λ) targets built from the target network (0: one-step TD).
         double_q: pick the next action with the online network, evaluate with the target.
         mixer_embed: QMIX mixing embedding (qmix, qmix_ns only).
         hypernet_hidden: hidden width of QMIX's hypernetworks (qmix, qmix_ns only).
@@ -42,23 +55,25 @@ class ValueConfig:
     gamma: float = 0.99
     lr: float = 5e-4
     grad_norm_clip: float = 10.0
-    target_update_interval: int = 200
+    target_update_episodes: int = 200
+    optimiser: Literal["adam", "rmsprop"] = "adam"
+    reward_norm: Literal["off", "scale", "standardise"] = "off"
+    td_lambda: float = 0.0
     double_q: bool = True
     mixer_embed: int = 32
     hypernet_hidden: int = 64
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ValueError(f"gamma must be in [0, 1], got {self.gamma}")
-        if self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.grad_norm_clip <= 0:
-            raise ValueError(f"grad_norm_clip must be > 0, got {self.grad_norm_clip}")
-        if self.target_update_interval < 1:
-            raise ValueError(
-                f"target_update_interval must be >= 1, got {self.target_update_interval}"
-            )
+        validate_value_schedule(
+            self.gamma,
+            self.lr,
+            self.grad_norm_clip,
+            self.target_update_episodes,
+            self.optimiser,
+            self.reward_norm,
+            self.td_lambda,
+        )
         if self.mixer_embed < 1 or self.hypernet_hidden < 1:
             raise ValueError("mixer_embed and hypernet_hidden must be >= 1")
 
@@ -85,10 +100,7 @@ class ValueLearner:
     ):
         self.cfg, self.info, self.mixing = cfg, info, mixing
         self.n_ensemble, self.device = n_ensemble, device
-        in_dim = info.obs_dim + info.n_actions + info.n_agents
-        self.agent = AgentNet(
-            n_ensemble, in_dim, info.n_actions, cfg.agent.hidden, cfg.agent.fc
-        ).to(device)
+        self.agent = cfg.agent.build(n_ensemble, info).to(device)
         modules = [self.agent]
         self.mixer: QMixer | None = None
         if mixing in ("qmix", "qmix_ns"):
@@ -97,13 +109,25 @@ class ValueLearner:
                 n_ensemble, info.n_agents, cond, cfg.mixer_embed, cfg.hypernet_hidden
             ).to(device)
             modules.append(self.mixer)
-        self.target_agent = TargetNet(self.agent, cfg.target_update_interval)
+        self.target_agent = TargetNet(self.agent, cfg.target_update_episodes)
         self.target_mixer = (
-            TargetNet(self.mixer, cfg.target_update_interval) if self.mixer else None
+            TargetNet(self.mixer, cfg.target_update_episodes) if self.mixer else None
         )
+        self.clock = EpisodeClock(cfg.target_update_episodes)
+        self.reward_norm = RewardNorm(cfg.reward_norm, n_ensemble, device)
         params = [p for m in modules for p in m.parameters()]
-        self.updater = Updater(params, cfg.lr, cfg.grad_norm_clip, name=f"{mixing} TD")
+        self.updater = Updater(params, cfg.lr, cfg.grad_norm_clip, f"{mixing} TD", cfg.optimiser)
         self.updates = 0
+
+    def sync_targets(self, episodes: int) -> bool:
+        """Copy the online networks into the targets when `episodes` (inserted so far) has
+        crossed another multiple of target_update_episodes; returns whether it did."""
+        if not self.clock.due(episodes):
+            return False
+        self.target_agent.copy_now()
+        if self.target_mixer:
+            self.target_mixer.copy_now()
+        return True
 
     def _cond(self, tb: TensorBatch) -> torch.Tensor:
         return tb.state if self.mixing == "qmix" else joint_obs(tb.obs)
@@ -119,6 +143,7 @@ class ValueLearner:
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One Q-learning update on a batch of episodes (`extra` is unused); returns metrics."""
         tb = TensorBatch.from_episodes(batch, self.device)
+        reward = self.reward_norm(tb.reward, tb.mask)
         inputs = agent_inputs(tb.obs, tb.actions, self.info.n_actions)
         qs = unroll(self.agent, inputs)  # [E, B, T+1, N, A]
         chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)  # [E, B, T, N]
@@ -132,10 +157,17 @@ class ValueLearner:
                 next_q = tqs.gather(-1, best).squeeze(-1)
             else:
                 next_q = tqs.masked_fill(~avail_next, -1e10).max(-1).values
+        cfg = self.cfg
         if self.mixing == "none":
-            y = td_targets(
-                tb.reward.unsqueeze(-1), tb.terminated.unsqueeze(-1), next_q, self.cfg.gamma
-            )
+            # per agent: put the agent axis before time for the target recursion
+            y = q_lambda_targets(
+                reward.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
+                tb.terminated.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
+                tb.mask.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
+                next_q.transpose(-1, -2),
+                cfg.gamma,
+                cfg.td_lambda,
+            ).transpose(-1, -2)
             td = chosen - y
             loss = masked_mean(td.pow(2), tb.mask.unsqueeze(-1).expand_as(td))
             q_taken = chosen.mean(-1)
@@ -145,15 +177,14 @@ class ValueLearner:
             with torch.no_grad():
                 target_mixer = self.target_mixer.module if self.target_mixer else None
                 next_tot = self._mix(target_mixer, next_q, cond[:, :, 1:])
-                y = td_targets(tb.reward, tb.terminated, next_tot, self.cfg.gamma)
+                y = q_lambda_targets(
+                    reward, tb.terminated, tb.mask, next_tot, cfg.gamma, cfg.td_lambda
+                )
             td = q_tot - y
             loss = masked_mean(td.pow(2), tb.mask)
             q_taken = q_tot
         norms = self.updater.apply(loss)
         self.updates += 1
-        self.target_agent.maybe_update(self.updates)
-        if self.target_mixer:
-            self.target_mixer.maybe_update(self.updates)
         return {
             "loss_td": float(loss.detach().mean()),
             "q_taken_mean": float(masked_mean(q_taken.detach(), tb.mask).mean()),
@@ -171,6 +202,8 @@ class ValueLearner:
             "target_mixer": self.target_mixer.module.state_dict() if self.target_mixer else None,
             "optimiser": self.updater.optimiser.state_dict(),
             "updates": self.updates,
+            "target_epoch": self.clock.epoch,
+            "reward_norm": self.reward_norm.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -181,3 +214,5 @@ class ValueLearner:
             self.target_mixer.module.load_state_dict(state["target_mixer"])
         self.updater.optimiser.load_state_dict(state["optimiser"])
         self.updates = int(state["updates"])
+        self.clock.epoch = int(state["target_epoch"])
+        self.reward_norm.load_state_dict(state["reward_norm"])

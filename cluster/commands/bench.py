@@ -10,11 +10,21 @@ import argparse
 
 from cluster.bench import codec as codec_bench
 from cluster.bench import env as env_bench
+from cluster.bench import learn as learn_bench
 from cluster.bench import matrix as matrix_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
+from cluster.bench import update as update_bench
 
-BENCHES: list = [env_bench, codec_bench, service_bench, matrix_bench, scaling_bench]
+BENCHES: list = [
+    env_bench,
+    codec_bench,
+    service_bench,
+    matrix_bench,
+    scaling_bench,
+    learn_bench,
+    update_bench,
+]
 
 
 def register(sub: argparse._SubParsersAction) -> None:

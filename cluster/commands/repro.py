@@ -1,18 +1,21 @@
 """`credit repro matrix`: the seed's matrix-game experiment (Fig. 5.3) for every algorithm;
-`credit repro emcac`: the seed's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13)."""
+`credit repro emcac`: the seed's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13);
+`credit repro smac`: the value family and RDN on SMAC-like maps (results/smac/)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import threading
 import time
 from pathlib import Path
+from types import ModuleType
 
-from cluster import repro_emcac, repro_matrix
+from cluster import repro_curves, repro_emcac, repro_matrix, repro_smac
 from cluster.cli_errors import UsageError
 from cluster.run_config import load_train_config
-from cluster.trainer import write_json
+from cluster.trainer import Progress, write_json
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -54,18 +57,48 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
 
 
 def register_emcac(rsub: argparse._SubParsersAction) -> None:
-    m = rsub.add_parser(
-        "emcac", help="seed Table 5.2: CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps"
+    _register_curves(
+        rsub,
+        "emcac",
+        "seed Table 5.2: CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps",
+        repro_emcac,
+        default_seeds=8,
     )
+    _register_curves(
+        rsub,
+        "smac",
+        "IQL, VDN, QMIX, QMIX-nostate and RDN on SMAC-like maps (skirmish or real SMAC)",
+        repro_smac,
+        default_seeds=3,
+    )
+
+
+def _register_curves(
+    rsub: argparse._SubParsersAction,
+    name: str,
+    help_text: str,
+    experiment: ModuleType,
+    default_seeds: int,
+) -> None:
+    m = rsub.add_parser(name, help=help_text)
     m.add_argument(
-        "--envs", default=",".join(repro_emcac.ENVS), help="comma-separated skirmish/smac env ids"
+        "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
     )
+    m.add_argument("--algos", default=",".join(experiment.ALGOS), help="comma-separated algorithms")
     m.add_argument(
-        "--algos", default=",".join(repro_emcac.ALGOS), help="comma-separated algorithms"
+        "--seeds",
+        type=int,
+        default=default_seeds,
+        help=f"seeds per algorithm and env, batched in one set of tensors ({default_seeds})",
     )
-    m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and env (default 8)")
     m.add_argument(
         "--t-max", type=int, default=None, help="env steps per run (default: the env's YAML)"
+    )
+    m.add_argument(
+        "--test-interval",
+        type=int,
+        default=None,
+        help="env steps between evaluations (default: the env's YAML)",
     )
     m.add_argument("--out", required=True, help="output folder")
     _add_run_options(m)
@@ -74,7 +107,7 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl",
     )
-    m.set_defaults(func=cmd_emcac)
+    m.set_defaults(func=lambda args: cmd_curves(args, name, experiment))
 
 
 def _check_algos(algos: list[str]) -> None:
@@ -85,7 +118,8 @@ def _check_algos(algos: list[str]) -> None:
             )
 
 
-def cmd_emcac(args: argparse.Namespace) -> int:
+def cmd_curves(args: argparse.Namespace, name: str, experiment: ModuleType) -> int:
+    """`credit repro emcac` / `credit repro smac`: curves of every (algo, env) pair."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g]
     _check_algos(algos)
@@ -94,37 +128,71 @@ def cmd_emcac(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
+    if args.test_interval:
+        overrides.append(f"run.test_interval={args.test_interval}")
+    t_max = 0
     for g in envs:  # validates every (algo, env) config before any training starts
         for a in algos:
-            load_train_config(a, g, [], overrides)
+            t_max += load_train_config(a, g, [], overrides).run.t_max
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     if args.summarise_only:
-        curves = repro_emcac.load_evals(out / "evals", algos, envs)
+        curves = repro_curves.load_evals(out / "evals", algos, envs)
         envs = [g for g in envs if any(c.env == g for c in curves)]
         if not curves:
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
-        curves = repro_emcac.run(algos, envs, args.seeds, overrides, args.workers, out / "evals")
-    summary = repro_emcac.summarise(curves)
+        done = threading.Event()
+        watcher = threading.Thread(target=_watch, args=(out / "evals", t_max, done), daemon=True)
+        watcher.start()
+        try:
+            curves = repro_curves.run(
+                algos, envs, args.seeds, overrides, args.workers, out / "evals"
+            )
+        finally:
+            done.set()
+            watcher.join()
+    summary = repro_curves.summarise(curves)
     write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
     for g in envs:
-        plots.append(f"emcac_{g.split('/', 1)[1]}.png")
-        repro_emcac.plot(curves, g, out / plots[-1])
-    log.info("repro emcac finished in %.0f s", time.monotonic() - started)
+        plots.append(f"{experiment.PLOT_PREFIX}_{g.split('/', 1)[1]}.png")
+        repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
+    log.info("repro %s finished in %.0f s", name, time.monotonic() - started)
     for g in envs:
         for a, v in summary[g].items():
             print(
-                f"{g:22s} {a:6s} win last10 median {v['median_win_rate_last10']:.2f} "
-                f"mean {v['mean_win_rate_last10']:.2f}  steps to 50% {v['steps_to_50']} "
-                f"to 80% {v['steps_to_80']}  smoothed: to 50% {v['steps_to_50_smoothed']} "
-                f"to 80% {v['steps_to_80_smoothed']}"
+                f"{g:22s} {a:7s} win last10 median {v['median_win_rate_last10']:.2f} "
+                f"mean {v['mean_win_rate_last10']:.2f}  steps to 50/80/95% "
+                f"{v['steps_to_50']}/{v['steps_to_80']}/{v['steps_to_95']}  smoothed "
+                f"{v['steps_to_50_smoothed']}/{v['steps_to_80_smoothed']}/"
+                f"{v['steps_to_95_smoothed']}  wall {v['wall_s']:.0f} s"
             )
     print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
     return 0
+
+
+def _watch(log_dir: Path, t_max: int, done: threading.Event) -> None:
+    """Progress over every pair from the evaluation logs the workers append to: env steps
+    done (each pair's latest evaluation) and each pair's latest median win rate."""
+    bar = Progress(t_max)
+    while not done.wait(2.0):
+        steps, wins = 0, []
+        for path in sorted(log_dir.glob("*.jsonl")):
+            lines = path.read_text().splitlines()
+            if not lines:
+                continue
+            try:
+                last = json.loads(lines[-1])
+            except json.JSONDecodeError:  # a line being written
+                continue
+            steps += int(last["t_env"])
+            won = sorted(last["won"])
+            wins.append(f"{last['algo']}@{last['env'].split('/')[-1]} {won[len(won) // 2]:.2f}")
+        bar.update(steps, "win " + ", ".join(wins))
+    bar.close()
 
 
 def cmd_matrix(args: argparse.Namespace) -> int:

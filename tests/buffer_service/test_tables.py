@@ -102,3 +102,14 @@ def test_config_validate_names_the_field(kw, field):
 def test_loopback_hosts_need_no_token():
     for host in ("127.0.0.1", "127.0.0.5", "::1", "localhost"):
         BufferConfig(host=host).validate()
+
+
+def test_replay_without_replacement_never_repeats_within_a_batch():
+    t = Table(TableConfig(name="r", kind="replay", capacity=10, replacement=False))
+    for i in range(6):
+        t.insert((1, i))
+    assert t.ready(6) and not t.ready(7)  # a batch needs that many distinct episodes
+    rng = random.Random(3)
+    for _ in range(200):
+        keys = t.choose(6, rng)
+        assert sorted(keys) == [(1, i) for i in range(6)]

@@ -8,7 +8,7 @@ from cluster.run_config import load_train_config
 
 def test_shipped_layers_apply_seed_hyper_parameters():
     cfg = load_train_config("rdn", "matrix/four_game")
-    assert cfg.algo.lr == 5e-4 and cfg.algo.gamma == 0.99 and cfg.algo.target_update_interval == 200
+    assert cfg.algo.lr == 5e-4 and cfg.algo.gamma == 0.99 and cfg.algo.target_update_episodes == 200
     assert cfg.algo.critic_hidden == (64, 64) and cfg.algo.obs_window == 4
     assert cfg.replay.capacity == 200 and cfg.replay.batch_size == 4
     assert cfg.exploration.epsilon_anneal_time == 2000

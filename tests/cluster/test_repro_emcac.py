@@ -5,7 +5,7 @@ import json
 import pytest
 
 from cluster.cli import main
-from cluster.repro_emcac import summarise_curve
+from cluster.repro_curves import summarise_curve
 
 
 @pytest.mark.parametrize(
@@ -23,6 +23,8 @@ from cluster.repro_emcac import summarise_curve
                 "steps_to_80": 30,
                 "steps_to_50_smoothed": None,  # fewer evaluations than the window
                 "steps_to_80_smoothed": None,
+                "steps_to_95": None,
+                "steps_to_95_smoothed": None,
                 "seeds": 3,
             },
         ),
@@ -39,6 +41,8 @@ from cluster.repro_emcac import summarise_curve
                 "steps_to_80": 1,
                 "steps_to_50_smoothed": 5,
                 "steps_to_80_smoothed": None,
+                "steps_to_95": 1,
+                "steps_to_95_smoothed": None,
                 "seeds": 1,
             },
         ),
@@ -54,6 +58,8 @@ from cluster.repro_emcac import summarise_curve
                 "steps_to_80": 20,
                 "steps_to_50_smoothed": 50,
                 "steps_to_80_smoothed": 60,
+                "steps_to_95": 60,
+                "steps_to_95_smoothed": None,
                 "seeds": 1,
             },
         ),
@@ -67,6 +73,8 @@ from cluster.repro_emcac import summarise_curve
                 "steps_to_80": None,
                 "steps_to_50_smoothed": None,
                 "steps_to_80_smoothed": None,
+                "steps_to_95": None,
+                "steps_to_95_smoothed": None,
                 "seeds": 2,
             },
         ),

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from learner.targets import lambda_returns, td_targets
+from learner.targets import lambda_returns, q_lambda_targets, td_targets
 
 G = 0.9
 
@@ -48,3 +48,24 @@ def test_lambda_returns_time_limit_cut_and_padding():
     g1 = 1.0 + G * 4.0
     g0 = 1.0 + G * (0.2 * 0.0 + 0.8 * g1)
     assert _lam(r, term, mask, v, 0.8) == pytest.approx([g0, g1, 0.0])
+
+
+def test_q_lambda_targets_zero_is_one_step_td_and_one_is_the_return():
+    r = torch.tensor([[1.0, 2.0, 3.0]])
+    term = torch.tensor([[0.0, 0.0, 1.0]])
+    mask = torch.ones(1, 3)
+    nxt = torch.tensor([[10.0, 20.0, 30.0]])  # values of the states after each step
+    torch.testing.assert_close(
+        q_lambda_targets(r, term, mask, nxt, G, 0.0), td_targets(r, term, nxt, G)
+    )
+    # λ = 1 on a terminated episode: the discounted Monte Carlo returns, no value used.
+    expected = [1 + G * 2 + G * G * 3, 2 + G * 3, 3.0]
+    torch.testing.assert_close(
+        q_lambda_targets(r, term, mask, nxt, G, 1.0), torch.tensor([expected])
+    )
+    # λ = 0.5 by hand: G2 = 3, G1 = 2 + G (0.5 * 20 + 0.5 * G2), G0 = 1 + G (0.5 * 10 + 0.5 G1)
+    g1 = 2 + G * (0.5 * 20 + 0.5 * 3)
+    g0 = 1 + G * (0.5 * 10 + 0.5 * g1)
+    torch.testing.assert_close(
+        q_lambda_targets(r, term, mask, nxt, G, 0.5), torch.tensor([[g0, g1, 3.0]])
+    )

@@ -1,0 +1,100 @@
+"""`credit bench learn`: env steps and wall seconds until each seed's greedy win rate first
+reaches a target.
+
+The seeds train together in one seed-batched `LocalTrainer` (E = seeds, one set of tensors,
+one torch thread), with the run's shipped config plus `--set` overrides; every
+`--test-interval` env steps each seed plays `run.test_episodes` greedy episodes. Training stops
+when every seed has reached the target or at `--t-max`. Wall time counts everything from the
+trainer's construction on (acting, updates and the evaluations themselves); the load average is
+sampled at every evaluation, so a busy machine shows in the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+import torch
+
+from cluster.bench.common import emit
+from cluster.cli_errors import UsageError
+from cluster.run_config import load_train_config
+from cluster.trainer import LocalTrainer
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("learn", help="env steps and wall time for seeds to reach a win rate")
+    p.add_argument("--env", default="skirmish/3m")
+    p.add_argument("--algo", default="qmix")
+    p.add_argument("--target-win", type=float, default=0.95, help="greedy win rate to reach")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--t-max", type=int, default=200_000, help="give up after this many steps")
+    p.add_argument("--test-interval", type=int, default=2000, help="env steps between evaluations")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--out", help="also write the JSON here")
+    p.set_defaults(func=cmd_learn)
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    if not 0.0 < args.target_win <= 1.0:
+        raise UsageError(f"--target-win must be in (0, 1], got {args.target_win}")
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    overrides = [f"run.t_max={args.t_max}", f"run.test_interval={args.test_interval}", *args.set]
+    cfg = load_train_config(args.algo, args.env, [], overrides)
+    torch.set_num_threads(1)
+    started = time.monotonic()
+    trainer = LocalTrainer(cfg, n_ensemble=args.seeds)
+    if not trainer.core.info.has_wins:
+        raise UsageError(f"{args.env} reports no battle wins; bench learn needs a map that does")
+    steps: list[int | None] = [None] * args.seeds
+    wall: list[float | None] = [None] * args.seeds
+    loads: list[float] = []
+    curve: list[dict] = []
+
+    def on_eval(records) -> None:
+        loads.append(os.getloadavg()[0])
+        now = round(time.monotonic() - started, 2)
+        curve.append({"t_env": records[0].t_env, "wall_s": now, "won": []})
+        for r in records:
+            won = r.test_won_mean or 0.0
+            curve[-1]["won"].append(won)
+            if steps[r.member] is None and won >= args.target_win - 1e-9:
+                steps[r.member], wall[r.member] = r.t_env, now
+
+    trainer.train(on_eval=on_eval, stop=lambda: all(s is not None for s in steps))
+
+    def median(xs: list) -> float | None:
+        """Median with a seed that never reached the target counted as infinitely late."""
+        m = float(np.median([np.inf if x is None else x for x in xs]))
+        return None if np.isinf(m) else m
+
+    emit(
+        "learn",
+        {
+            "env": args.env,
+            "algo": args.algo,
+            "target_win": args.target_win,
+            "seeds": args.seeds,
+            "test_interval": args.test_interval,
+            "test_episodes": cfg.run.test_episodes,
+            "overrides": args.set,
+            "env_steps": steps,
+            "wall_s": wall,
+            "median_env_steps": median(steps),
+            "median_wall_s": median(wall),
+            "t_env_end": trainer.core.t_env,
+            "total_wall_s": round(time.monotonic() - started, 2),
+            "updates": trainer.core.learner.updates,
+            "load_avg_1m": {
+                "min": min(loads, default=None),
+                "mean": round(float(np.mean(loads)), 2) if loads else None,
+                "max": max(loads, default=None),
+            },
+            "curve": curve,
+        },
+        args.out,
+    )
+    return 0

@@ -1,0 +1,99 @@
+"""`credit bench update`: the cost of one learner update of several algorithms on the same
+batch, side by side.
+
+One batch of `--batch` episodes is recorded once on `--env` with a uniformly random policy
+(ε = 1); every algorithm is built from its shipped config (plus `--set` overrides) and steps on
+that same batch. Rounds interleave the algorithms so that drift in the machine's load hits them
+alike; the JSON has each one's median milliseconds per update and its ratio to the first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+import torch
+
+from actors.envs.registry import make_vec_env
+from actors.policy import ExplorationConfig
+from actors.rollout import RolloutWorker
+from buffer_service.episode import EpisodeBatch
+from cluster.bench.common import emit
+from cluster.cli_errors import UsageError
+from cluster.run_config import load_train_config
+from learner.registry import get_algo
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("update", help="learner update cost of several algorithms, one batch")
+    p.add_argument("--env", default="skirmish/3m")
+    p.add_argument("--algos", default="vdn,rdn", help="comma-separated; ratios are to the first")
+    p.add_argument("--batch", type=int, default=32, help="episodes per update")
+    p.add_argument("--seeds", type=int, default=1, help="ensemble members (E)")
+    p.add_argument("--rounds", type=int, default=5)
+    p.add_argument("--updates", type=int, default=10, help="updates per algorithm per round")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--out", help="also write the JSON here")
+    p.set_defaults(func=cmd_update)
+
+
+def record_batch(env: str, episodes: int, seeds: int) -> EpisodeBatch:
+    """`episodes` random-policy episodes per member, stacked [E, B, ...] (or [B, ...])."""
+    venv = make_vec_env(env, episodes * seeds, seed=0)
+    schema = venv.info.schema()
+    cfg = load_train_config("vdn", env, [], [])
+    agent = cfg.algo.agent.build(seeds, schema)
+    worker = RolloutWorker(venv, agent, "q", ExplorationConfig(1.0, 1.0, 1), seeds)
+    eps = worker.run_round(t_env=0).episodes
+    parts = [
+        EpisodeBatch.from_episodes(eps[k * episodes : (k + 1) * episodes]) for k in range(seeds)
+    ]
+    return parts[0] if seeds == 1 else EpisodeBatch.stack(parts)
+
+
+def cmd_update(args: argparse.Namespace) -> int:
+    algos = [a for a in args.algos.split(",") if a]
+    if not algos:
+        raise UsageError("--algos must name at least one algorithm")
+    for a in algos:
+        try:
+            get_algo(a)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+    torch.set_num_threads(1)
+    batch = record_batch(args.env, args.batch, args.seeds)
+    learners = {}
+    for a in algos:
+        cfg = load_train_config(a, args.env, [], args.set)
+        learner = get_algo(a).build(
+            cfg.algo, make_vec_env(args.env, 1).info.schema(), args.seeds, "cpu"
+        )
+        learner.step(batch)  # warm-up: allocator and first-call costs out of the timing
+        learners[a] = learner
+    times: dict[str, list[float]] = {a: [] for a in algos}
+    for _ in range(args.rounds):
+        for a, learner in learners.items():
+            started = time.perf_counter()
+            for _ in range(args.updates):
+                learner.step(batch)
+            times[a].append((time.perf_counter() - started) / args.updates * 1000)
+    ms = {a: round(float(np.median(v)), 2) for a, v in times.items()}
+    first = algos[0]
+    emit(
+        "update",
+        {
+            "env": args.env,
+            "batch_episodes": args.batch,
+            "batch_steps": int(batch.reward.shape[-1]),
+            "seeds": args.seeds,
+            "overrides": args.set,
+            "ms_per_update": ms,
+            f"ratio_to_{first}": {a: round(ms[a] / ms[first], 2) for a in algos},
+            "rounds_ms": {a: [round(x, 2) for x in v] for a, v in times.items()},
+            "load_avg_1m": os.getloadavg()[0],
+        },
+        args.out,
+    )
+    return 0

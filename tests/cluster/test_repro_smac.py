@@ -1,0 +1,79 @@
+"""`credit repro smac` and `credit bench learn`: tiny end-to-end runs and their bad input."""
+
+import json
+
+import pytest
+
+from cluster.cli import main
+
+
+def test_tiny_repro_smac_writes_summary_with_steps_to_95_and_plots(tmp_path, capsys):
+    out = tmp_path / "smac"
+    argv = ["repro", "smac", "--envs", "skirmish/3m", "--algos", "vdn,rdn", "--seeds", "2"]
+    argv += ["--t-max", "600", "--test-interval", "300", "--out", str(out), "--workers", "1"]
+    argv += ["--set", "run.test_episodes=2", "--set", "replay.batch_size=4"]
+    assert main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["skirmish/3m"]) == {"vdn", "rdn"}
+    keys = {
+        "steps_to_50",
+        "steps_to_80",
+        "steps_to_95",
+        "steps_to_50_smoothed",
+        "steps_to_80_smoothed",
+        "steps_to_95_smoothed",
+        "median_win_rate_last10",
+        "mean_win_rate_last10",
+        "seeds",
+        "t_env",
+        "wall_s",
+    }
+    for cell in summary["skirmish/3m"].values():
+        assert keys <= set(cell)
+        assert cell["seeds"] == 2 and cell["t_env"] >= 600
+    assert (out / "smac_3m.png").stat().st_size > 0
+    rows = [json.loads(x) for x in (out / "evals" / "skirmish-3m__rdn.jsonl").open()]
+    assert len(rows) >= 3 and all(len(r["won"]) == 2 for r in rows)
+    assert "loss_critic" in rows[-1] and "q_tot_mean" in rows[-1]  # RDN's diagnostics
+    vdn = [json.loads(x) for x in (out / "evals" / "skirmish-3m__vdn.jsonl").open()]
+    assert "q_taken_mean" in vdn[-1] and "loss_td" in vdn[-1]
+    assert "steps to 50/80/95%" in capsys.readouterr().out
+
+
+def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys):
+    out = tmp_path / "learn.json"
+    argv = ["bench", "learn", "--env", "skirmish/3m", "--algo", "vdn", "--seeds", "2"]
+    argv += ["--target-win", "1.0", "--t-max", "500", "--test-interval", "250"]
+    argv += ["--set", "run.test_episodes=2", "--set", "replay.batch_size=4", "--out", str(out)]
+    assert main(argv) == 0
+    got = json.loads(out.read_text())
+    assert len(got["env_steps"]) == 2 and len(got["wall_s"]) == 2
+    for steps, wall in zip(got["env_steps"], got["wall_s"], strict=True):
+        assert (steps is None) == (wall is None)
+        assert steps is None or steps <= got["t_env_end"]
+    assert got["t_env_end"] >= 500 or all(s is not None for s in got["env_steps"])
+    assert {"min", "mean", "max"} <= set(got["load_avg_1m"])
+    assert all(len(c["won"]) == 2 for c in got["curve"])
+    assert json.loads(capsys.readouterr().out)["benchmark"] == "learn"
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["bench", "learn", "--target-win", "1.5"], "--target-win must be in (0, 1]"),
+        (["bench", "learn", "--env", "matrix/two_step"], "reports no battle wins"),
+        (["bench", "learn", "--algo", "dqn"], "unknown algorithm 'dqn'"),
+        (["bench", "update", "--algos", "vdn,dqn"], "unknown algorithm 'dqn'"),
+        (["repro", "smac", "--out", "x", "--algos", "qmix,nope"], "unknown algorithm 'nope'"),
+    ],
+)
+def test_bad_input_exits_2(argv, message, capsys):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bench_update_times_algorithms_side_by_side(capsys):
+    argv = ["bench", "update", "--env", "skirmish/3m", "--algos", "vdn,rdn", "--batch", "4"]
+    assert main([*argv, "--rounds", "1", "--updates", "1"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert set(got["ms_per_update"]) == {"vdn", "rdn"} and got["ratio_to_vdn"]["vdn"] == 1.0
