@@ -106,7 +106,9 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
     Returns means over members, transitions and agents: `mean_abs_dq`, `mean_abs_dr`,
     `mean_abs_dr_obs`, `slope_dr_on_dq` (least squares), `sign_agreement` (share of swaps with
     |dq| > 0.01 where dr has dq's sign), `argmax_agreement` (share of (transition, agent) where
-    the action maximising R_i is the one maximising Q_c), `swaps`.
+    the action maximising R_i is the one maximising Q_c), `agent_argmax_agreement` (the same for
+    the agent network's own greedy action: does the agent act as the critic would have it?),
+    `swaps`.
     """
     tb = TensorBatch.from_episodes(batch)
     e, b, t, n = tb.shape
@@ -124,7 +126,8 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
             return agent_relevance(rel, n).view(e, b, t, n), q.view(e, b, t)
 
         r0, q0 = split(hist, tb.actions)
-        dq_all, dr_all, agree_arg = [], [], []
+        agent_q = unroll(learner.agent, agent_inputs(tb.obs, tb.actions, a_n))[:, :, :-1]
+        dq_all, dr_all, agree_arg, agree_agent = [], [], [], []
         for i in range(n):
             rs, qs = [], []
             for a in range(a_n):
@@ -143,6 +146,8 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
             best_q = qs_t.masked_fill(~ok, -1e10).argmax(-1)
             best_r = rs_t.masked_fill(~ok, -1e10).argmax(-1)
             agree_arg.append((best_q == best_r)[choosable].float())
+            best_agent = agent_q[..., i, :].masked_fill(~ok, -1e10).argmax(-1)
+            agree_agent.append((best_q == best_agent)[choosable].float())
         dq, dr = torch.cat(dq_all), torch.cat(dr_all)
         flat = hist.reshape(e, b * t, n, -1)
         perm = torch.randperm(b * t, generator=gen)
@@ -164,5 +169,6 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
         if big.any()
         else None,
         "argmax_agreement": float(torch.cat(agree_arg).mean()),
+        "agent_argmax_agreement": float(torch.cat(agree_agent).mean()),
         "swaps": int(dq.numel()),
     }

@@ -48,7 +48,12 @@ class EnsembleGRUCell(nn.Module):
                 p.uniform_(-bound, bound)
 
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-        gi, gh = self.ih(x), self.hh(h)
+        return self.recur(self.ih(x), h)
+
+    def recur(self, gi: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """One step from a precomputed input projection gi = ih(x) [E, M, 3H] (an unroll
+        projects every step's input in one call; only this part is sequential)."""
+        gh = self.hh(h)
         i_r, i_z, i_n = gi.chunk(3, dim=-1)
         h_r, h_z, h_n = gh.chunk(3, dim=-1)
         r = torch.sigmoid(i_r + h_r)
@@ -187,12 +192,16 @@ def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
     if not agent.recurrent:
         out = agent.head(F.relu(agent.inp(inputs.reshape(e, b * tp * n, d))))
         return out.view(e, b, tp, n, -1)
+    # The input projection and the layers after the GRU act on every step at once; only the
+    # recurrence itself runs step by step (same arithmetic as calling the agent per step).
+    gi = agent.gru.ih(inputs.transpose(1, 2).reshape(e, tp * b * n, d)).view(e, tp, b * n, -1)
     h = agent.init_hidden(e, b * n)
-    outs = []
-    for t in range(tp):
-        out, h = agent(inputs[:, :, t].reshape(e, b * n, d), h)
-        outs.append(out.view(e, b, n, -1))
-    return torch.stack(outs, dim=2)
+    hs = []
+    for g in gi.unbind(1):  # unbind, not gi[:, t]: one gradient stack, not one per step
+        h = agent.gru.recur(g, h)
+        hs.append(h)
+    out = agent.head(torch.stack(hs, dim=1).view(e, tp * b * n, -1))
+    return out.view(e, tp, b, n, -1).transpose(1, 2)
 
 
 @dataclass(frozen=True)

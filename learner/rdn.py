@@ -32,7 +32,7 @@ from learner.common import (
     Updater,
     validate_value_schedule,
 )
-from learner.lrp import LRP_RULES, agent_relevance, lrp_epsilon
+from learner.lrp import LRP_RULES, agent_relevance, agent_relevance_all_actions, lrp_epsilon
 from learner.networks import MLP, unroll
 from learner.targets import q_lambda_targets
 
@@ -55,6 +55,10 @@ class RDNConfig:
         lrp_rule: relevance rule, one of learner.lrp.LRP_RULES.
         lrp_eps: ε of the LRP-ε rule.
         next_action: "greedy" or "joint_max" (module docstring).
+        agent_targets: "taken" (the seed's: Q_i(o_i, u_i) of the taken action regresses onto
+            agent i's LRP share of Q_c(x)) or "all_actions" (every available action a of
+            agent i regresses onto its LRP share of Q_c with its action moved to a, the
+            others' actions fixed; module docstring).
         joint_max_limit: largest joint action space "joint_max" may enumerate.
         agent: the shared agent network.
     """
@@ -71,6 +75,7 @@ class RDNConfig:
     lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
     lrp_eps: float = 0.01
     next_action: Literal["greedy", "joint_max"] = "greedy"
+    agent_targets: Literal["taken", "all_actions"] = "taken"
     joint_max_limit: int = 1024
     agent: AgentConfig = field(default_factory=AgentConfig)
 
@@ -95,6 +100,10 @@ class RDNConfig:
             )
         if self.lrp_rule not in LRP_RULES:
             raise ValueError(f"lrp_rule must be one of {LRP_RULES}")
+        if self.agent_targets == "all_actions" and self.lrp_rule == "grad_x_input":
+            raise ValueError(
+                "agent_targets=all_actions needs an epsilon lrp_rule, not grad_x_input"
+            )
 
 
 class RDNLearner(AgentCriticLearner):
@@ -188,9 +197,23 @@ class RDNLearner(AgentCriticLearner):
 
         relevance, q_tot = lrp_epsilon(self.critic, x, self.cfg.lrp_eps, self.cfg.lrp_rule)
         targets = agent_relevance(relevance, n).view(e, b, t, n)
-        chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
-        mask = tb.mask.unsqueeze(-1).expand_as(chosen)
-        agent_loss = masked_mean((chosen - targets).pow(2), mask)
+        if self.cfg.agent_targets == "all_actions":
+            every = agent_relevance_all_actions(
+                self.critic,
+                x,
+                tb.actions.reshape(e, b * t, n),
+                n,
+                self.cfg.obs_window * self.info.obs_dim,
+                self.info.n_actions,
+                self.cfg.lrp_eps,
+                self.cfg.lrp_rule,
+            ).view(e, b, t, n, -1)
+            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
+            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
+        else:
+            chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
+            mask = tb.mask.unsqueeze(-1).expand_as(chosen)
+            agent_loss = masked_mean((chosen - targets).pow(2), mask)
         self.agent_updater.apply(agent_loss)
 
         self.updates += 1

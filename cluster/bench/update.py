@@ -34,7 +34,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", type=int, default=1, help="ensemble members (E)")
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--updates", type=int, default=10, help="updates per algorithm per round")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="[ALGO:]KEY=VALUE",
+        help="config override; with ALGO: for that algorithm only",
+    )
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=cmd_update)
 
@@ -53,6 +59,18 @@ def record_batch(env: str, episodes: int, seeds: int) -> EpisodeBatch:
     return parts[0] if seeds == 1 else EpisodeBatch.stack(parts)
 
 
+def overrides_for(algo: str, overrides: list[str]) -> list[str]:
+    """The --set values that apply to `algo`: unprefixed ones and those prefixed `algo:`."""
+    out = []
+    for o in overrides:
+        head, sep, rest = o.partition(":")
+        if not sep or "=" in head:
+            out.append(o)
+        elif head == algo:
+            out.append(rest)
+    return out
+
+
 def cmd_update(args: argparse.Namespace) -> int:
     algos = [a for a in args.algos.split(",") if a]
     if not algos:
@@ -66,7 +84,7 @@ def cmd_update(args: argparse.Namespace) -> int:
     batch = record_batch(args.env, args.batch, args.seeds)
     learners = {}
     for a in algos:
-        cfg = load_train_config(a, args.env, [], args.set)
+        cfg = load_train_config(a, args.env, [], overrides_for(a, args.set))
         learner = get_algo(a).build(
             cfg.algo, make_vec_env(args.env, 1).info.schema(), args.seeds, "cpu"
         )

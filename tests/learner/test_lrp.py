@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from learner.lrp import LRP_RULES, agent_relevance, lrp_epsilon
+from learner.lrp import LRP_RULES, agent_relevance, agent_relevance_all_actions, lrp_epsilon
 from learner.networks import MLP
 
 
@@ -95,3 +95,27 @@ def test_ensemble_members_are_independent():
     rel1, _ = lrp_epsilon(mlp, x)
     torch.testing.assert_close(rel0[0], rel1[0])
     assert not torch.allclose(rel0[1], rel1[1])
+
+
+@pytest.mark.parametrize("rule", ["eps_residual", "eps", "eps_nobias"])
+def test_all_actions_shares_match_one_lrp_call_per_counterfactual(rule):
+    """The first-layer shortcut gives exactly what N·A separate LRP calls give."""
+    torch.manual_seed(0)
+    e, m, n, a, obs = 2, 5, 3, 4, 6
+    block = obs + a + n
+    mlp = MLP(e, n * block, (16, 8), 1)
+    o = torch.randn(e, m, n, obs)
+    acts = torch.randint(0, a, (e, m, n))
+
+    def inputs(actions):
+        ids = torch.eye(n).expand(e, m, n, n)
+        onehot = torch.nn.functional.one_hot(actions, a).float()
+        return torch.cat([o, onehot, ids], -1).reshape(e, m, n * block)
+
+    got = agent_relevance_all_actions(mlp, inputs(acts), acts, n, obs, a, 0.01, rule)
+    for i in range(n):
+        for u in range(a):
+            alt = acts.clone()
+            alt[..., i] = u
+            rel, _ = lrp_epsilon(mlp, inputs(alt), 0.01, rule)
+            torch.testing.assert_close(got[..., i, u], agent_relevance(rel, n)[..., i])

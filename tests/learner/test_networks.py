@@ -56,3 +56,17 @@ def test_clip_grad_norm_per_member_clips_each_member_by_its_own_norm():
     torch.testing.assert_close(norms, torch.tensor([5.0, 0.5]))
     torch.testing.assert_close(p.grad[0].norm(), torch.tensor(1.0), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(p.grad[1], torch.tensor([0.3, 0.4, 0.0]))  # under the limit
+
+
+def test_unroll_matches_the_agent_called_step_by_step():
+    """The batched unroll (input projection and head over every step at once) computes what
+    the actors compute calling the agent one step at a time."""
+    torch.manual_seed(0)
+    net = AgentNet(2, input_dim=5, n_actions=3)
+    x = torch.randn(2, 4, 6, 3, 5)  # [E, B, T, N, D]
+    h = net.init_hidden(2, 4 * 3)
+    steps = []
+    for t in range(6):
+        out, h = net(x[:, :, t].reshape(2, 12, 5), h)
+        steps.append(out.view(2, 4, 3, 3))
+    torch.testing.assert_close(unroll(net, x), torch.stack(steps, dim=2))
