@@ -10,14 +10,13 @@ from __future__ import annotations
 from importlib import resources
 from typing import Any
 
+from actors.envs.skirmish.config import SkirmishConfig, make_config
 from actors.envs.skirmish.env import SkirmishEnv, SkirmishVecEnv
 from actors.envs.skirmish.spec import (
     MapSpec,
-    SkirmishConfig,
     builtin_map,
     builtin_map_names,
     load_map_file,
-    make_config,
 )
 
 __all__ = [

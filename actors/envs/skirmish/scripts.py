@@ -83,12 +83,13 @@ def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray
 def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
     """Banelings charge the nearest enemy; zerglings step back (away from the nearest enemy)
     while any baneling, ours or the enemy's, lives, then attack the nearest enemy."""
-    b, st, N = venv.battle, venv.st, venv.st.N
+    b, N = venv.battle, venv.st.N
     nearest = nearest_policy(venv, rng)
-    is_bane = st.kind[:N] == KINDS.index("baneling")
-    banes_alive = (b.alive & (st.kind == KINDS.index("baneling"))[None]).any(1)
+    bane = b.kind == KINDS.index("baneling")  # [M, U]
+    is_bane = bane[:, :N]
+    banes_alive = (b.alive & bane).any(1)
     back = _toward(venv, -1.0)
-    step_back = ~is_bane[None] & banes_alive[:, None]
+    step_back = ~is_bane & banes_alive[:, None]
     acts = np.where(step_back, back, nearest)
     dead = venv.get_avail_actions()[:, :, 0] > 0
     return np.where(dead, 0, acts)
