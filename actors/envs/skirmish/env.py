@@ -123,8 +123,8 @@ class SkirmishVecEnv:
         acts = np.ascontiguousarray(actions, np.int64).reshape(M, N)
         avail = self.get_avail_actions()
         b = self.battle
-        bad = set_orders(acts, active, avail, N, b.rid, b.rosters.agent_healer, b.g,
-                         self.last_action)  # fmt: skip
+        bad = set_orders(acts, active, avail, N, b.rid, b.rosters.agent_healer,
+                         self.cfg.move_amount, b.f, b.g, self.last_action)  # fmt: skip
         if bad >= 0:
             k, i = divmod(int(bad), N)
             valid = np.flatnonzero(avail[k, i]).tolist()

@@ -9,7 +9,8 @@ Data layout (built by `sim.Statics` / `sim.Battle`; unit u < N is agent u, else 
   [R, 2, U, U] damage of one attack of i on j to (health after armour, shields), can_hit
   [R, U, U] (foe and a weapon that reaches it: ground / air), collide [R, U, U]. The
   per-sub-step helpers take one roster's 2-D slices. par [N_PAR] scalars (P_LOOPS ...).
-* f [M, N_F, U] float state (X, Y, HP, SH, CD, EN, SINCE), g [M, N_G, U] int state (ORDER,
+* f [M, N_F, U] float state (X, Y, HP, SH, CD, EN, SINCE, REM: distance left of a move
+  order, which ends `move_amount` away as in SMAC), g [M, N_G, U] int state (ORDER,
   OTGT: target unit index, MDIR: move action 2-5, ARRIVED, LAST_TGT), alive [M, U],
   way [M, 2] the point the scripted enemy attack-moves to (the agents' spawn).
 
@@ -37,8 +38,8 @@ HEAL, HP_PER_EN, SPLASH_R, SPLASH_LEN, SPLASH_W, WAY_DX, WAY_DY = range(8, 15)
 N_UF = 15
 TEAM, KIND, HEALABLE, THREAT = range(4)
 N_UI = 4
-X, Y, HP, SH, CD, EN, SINCE = range(7)
-N_F = 7
+X, Y, HP, SH, CD, EN, SINCE, REM = range(8)
+N_F = 8
 ORDER, OTGT, MDIR, ARRIVED, LAST_TGT = range(5)
 N_G = 5
 P_LOOPS, P_MAP_W, P_MAP_H, P_REGEN_DELAY, P_REGEN, P_ACQUIRE, P_ARRIVE, P_DODGE = range(8)
@@ -354,8 +355,10 @@ def _move(m, par, uf, f, g, alive, way, dist, tgt, mode, fire, nx, ny):
             ny[u] = y - (f[m, Y, t] - y) / d * step
         elif mode[u] == M_DIR:
             k = g[m, MDIR, u]
-            nx[u] = x + _DX[k] * step
-            ny[u] = y + _DY[k] * step
+            s = min(step, f[m, REM, u])
+            nx[u] = x + _DX[k] * s
+            ny[u] = y + _DY[k] * s
+            f[m, REM, u] -= s
         elif mode[u] == M_WAY:
             wx, wy = way[m, 0] + uf[u, WAY_DX] - x, way[m, 1] + uf[u, WAY_DY] - y
             d = max(math.sqrt(wx * wx + wy * wy), 1e-9)
@@ -420,6 +423,7 @@ def reset_battles(envs, draws, jitter, rid, start_pos, goal, team, uf, energy_st
             f[m, CD, u] = 0.0
             f[m, EN, u] = energy_start[r, u]
             f[m, SINCE, u] = 0.0
+            f[m, REM, u] = 0.0
             alive[m, u] = True
             g[m, :, u] = 0
             g[m, OTGT, u] = -1
@@ -429,9 +433,10 @@ def reset_battles(envs, draws, jitter, rid, start_pos, goal, team, uf, energy_st
 
 
 @njit(cache=True)
-def set_orders(acts, active, avail, N, rid, agent_healer, g, last_action):
+def set_orders(acts, active, avail, N, rid, agent_healer, move_amount, f, g, last_action):
     """Check every active agent's action against `avail` and turn actions into orders
-    (agent_healer [R, N]: a healer's target index is an ally's).
+    (agent_healer [R, N]: a healer's target index is an ally's; a move order goes
+    `move_amount` far).
 
     Returns -1, or m * N + i of the first unavailable action (then nothing is changed).
     """
@@ -452,6 +457,7 @@ def set_orders(acts, active, avail, N, rid, agent_healer, g, last_action):
             g[m, ORDER, i] = ATTACK if a >= 6 else (MOVE if a >= 2 else IDLE)
             g[m, OTGT, i] = -1 if a < 6 else (a - 6 if healer[i] else N + a - 6)
             g[m, MDIR, i] = a if 2 <= a <= 5 else 0
+            f[m, REM, i] = move_amount if 2 <= a <= 5 else 0.0
             last_action[m, i, :] = 0.0
             last_action[m, i, a] = 1.0
     return -1

@@ -31,16 +31,27 @@ MARKERS = {
 }
 
 
-def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
-    """What a frame of battle m shows, copied (so frames can be drawn later)."""
-    b = venv.battle
-    ro = b.roster(m)
+def statics(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
+    """What stays fixed during an episode of battle m: its units and the map."""
+    ro = venv.battle.roster(m)
     return {
         "names": ro.names, "team": ro.team, "radius": ro.radius, "hp_max": ro.hp_max,
-        "sh_max": ro.sh_max, "map": (venv.st.map_w, venv.st.map_h), "x": b.x[m].copy(),
-        "y": b.y[m].copy(), "hp": b.hp[m].copy(), "sh": b.sh[m].copy(),
+        "sh_max": ro.sh_max, "map": (venv.st.map_w, venv.st.map_h),
+    }  # fmt: skip
+
+
+def dynamics(venv: SkirmishVecEnv, m: int = 0) -> dict[str, np.ndarray]:
+    """Battle m's unit state now (copied): x, y, hp, sh, alive, tgt (last target, -1 none)."""
+    b = venv.battle
+    return {
+        "x": b.x[m].copy(), "y": b.y[m].copy(), "hp": b.hp[m].copy(), "sh": b.sh[m].copy(),
         "alive": b.alive[m].copy(), "tgt": b.last_tgt[m].copy(),
     }  # fmt: skip
+
+
+def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
+    """What a frame of battle m shows (`statics` and `dynamics`), so it can be drawn later."""
+    return {**statics(venv, m), **dynamics(venv, m)}
 
 
 def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:

@@ -54,11 +54,12 @@ def _advance(venv: SkirmishVecEnv) -> np.ndarray:
     """Move toward the nearest enemy; but before contact (no enemy within shoot range of any
     agent) hold once an enemy is in sight, so the enemy walks into range rather than
     getting the first volley."""
-    b, N, cfg = venv.battle, venv.st.N, venv.cfg
+    b, N, ro = venv.battle, venv.st.N, venv.battle.rosters
     _, _, dist = venv.pairwise()
     d = np.where(b.alive[:, None, N:] & b.alive[:, :N, None], dist[:, :N, N:], np.inf)
-    seen = (d < cfg.sight_range).any(-1)
-    contact = (d <= cfg.shoot_range).any((1, 2))
+    sight, shoot = ro.sight[b.rid][..., None], ro.shoot[b.rid][..., None]  # [M, N, 1]
+    seen = (d < sight).any(-1)
+    contact = (d <= shoot).any((1, 2))
     return np.where(seen & ~contact[:, None], 1, _toward(venv, 1.0))
 
 
