@@ -8,7 +8,8 @@ types (lists from `get_obs` / `get_avail_actions`, a float32 state, `info` with
 Keywords, by what they do here:
 
 * Honoured as SMAC does: `map_name` (a skirmish map: "3m", "skirmish/3m",
-  "protoss_5_vs_5", or a map file path ending in .yaml), `step_mul` (None: the default 8),
+  "protoss_5_vs_5", a map file path ending in .yaml, or a `MapSpec`), `step_mul` (None:
+  the default 8),
   `move_amount`, `seed`, `continuing_episode` (only then does a timeout's info carry
   `episode_limit=True`), `obs_all_health`, `obs_own_health`, `obs_last_action`,
   `obs_instead_of_state`, `obs_timestep_number`, `state_last_action`,
@@ -118,9 +119,11 @@ class MultiAgentEnv:
         }
 
 
-def resolve_map(map_name: str) -> MapSpec:
+def resolve_map(map_name: str | MapSpec) -> MapSpec:
     """A skirmish map from SMAC's `map_name`: a built-in name (optionally "skirmish/"-
-    prefixed) or the path of a map file ending in .yaml / .yml."""
+    prefixed), the path of a map file ending in .yaml / .yml, or a MapSpec."""
+    if isinstance(map_name, MapSpec):
+        return map_name
     if not isinstance(map_name, str):
         raise EnvError(f"map_name must be a string, got {map_name!r}")
     if map_name.endswith((".yaml", ".yml")):
@@ -211,6 +214,7 @@ class StarCraft2Env(MultiAgentEnv):
         cfg = make_smac_config(opts)
         spec = resolve_map(map_name)
         self.vec = SkirmishVecEnv(spec, 1, seed=seed, config=cfg)
+        opts["map_name"] = spec.name if isinstance(map_name, MapSpec) else map_name
         self._set_attributes(opts, cfg)
         self._replays: deque[dict] = deque(maxlen=REPLAY_EPISODES)
         self._figure = None

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from actors.envs.base import EnvError
 from actors.envs.skirmish import StarCraft2Env, smac_shim_path
 
 # env_args of EPyMARL's src/config/envs/sc2.yaml (PyMARL's and PyMARL2's differ only in
@@ -26,20 +27,30 @@ EPYMARL_SC2 = {
 PYMARL_SC2 = {**EPYMARL_SC2, "state_last_action": True}
 
 
-@pytest.fixture
-def shim_smac():
-    """`import smac.env` through the shim folder, as the README's PYTHONPATH line does."""
-    saved = {k: m for k, m in sys.modules.items() if k == "smac" or k.startswith("smac.")}
+def _shimmed(package: str):
+    """Import `package` through the shim folder, as the README's PYTHONPATH line does."""
+    mine = lambda k: k == package or k.startswith(package + ".")  # noqa: E731
+    saved = {k: m for k, m in sys.modules.items() if mine(k)}
     for k in saved:
         del sys.modules[k]
     sys.path.insert(0, smac_shim_path())
     try:
-        yield importlib.import_module("smac.env")
+        yield importlib.import_module(package + ".env")
     finally:
         sys.path.remove(smac_shim_path())
-        for k in [k for k in sys.modules if k == "smac" or k.startswith("smac.")]:
+        for k in [k for k in sys.modules if mine(k)]:
             del sys.modules[k]
         sys.modules.update(saved)
+
+
+@pytest.fixture
+def shim_smac():
+    yield from _shimmed("smac")
+
+
+@pytest.fixture
+def shim_smacv2():
+    yield from _shimmed("smacv2")
 
 
 def test_shim_is_smacs_import_path(shim_smac):
@@ -107,3 +118,52 @@ def test_randomised_scenario_through_the_shim(shim_smac):
     for _ in range(3):
         run_episode(env, rng, stats)
     assert stats["n_episodes"] == 3
+
+
+# env_args of EPyMARL's smacv2_configs/protoss_5_vs_5.yaml (SMACv2's own sc2_gen_protoss).
+SMACV2_PROTOSS_5 = {
+    **{k: v for k, v in PYMARL_SC2.items() if k not in ("seed", "heuristic_rest")},
+    "map_name": "10gen_protoss", "state_last_action": True, "conic_fov": False,
+    "use_unit_ranges": True, "min_attack_range": 2, "obs_own_pos": True, "num_fov_actions": 12,
+    "capability_config": {
+        "n_units": 5, "n_enemies": 5,
+        "team_gen": {"dist_type": "weighted_teams", "unit_types": ["stalker", "zealot", "colossus"],
+                     "weights": [0.45, 0.45, 0.1], "observe": True},
+        "start_positions": {"dist_type": "surrounded_and_reflect", "p": 0.5, "map_x": 32,
+                            "map_y": 32},
+    },
+}  # fmt: skip
+
+
+def test_smacv2_capability_wrapper_through_the_shim(shim_smacv2):
+    wrapper = importlib.import_module("smacv2.env.starcraft2.wrapper")
+    env = wrapper.StarCraftCapabilityEnvWrapper(**SMACV2_PROTOSS_5)
+    info = env.get_env_info()
+    assert (info["obs_shape"], info["state_shape"], info["n_actions"]) == (92, 130, 11)
+    assert info["cap_shape"] == 3 and info["episode_limit"] == 200
+    ref = StarCraft2Env(map_name="protoss_5_vs_5", seed=4)  # the same scenario, by name
+    env.seed(4)
+    np.testing.assert_array_equal(env.reset()[1], ref.reset()[1])
+    caps = env.get_capabilities().reshape(5, 3)
+    assert (caps.sum(1) == 1).all() and (caps == np.array(env.get_obs())[:, -3:]).all()
+    rng, stats = torch.Generator().manual_seed(0), {}
+    for _ in range(2):
+        run_episode(env, rng, stats)
+    assert stats["n_episodes"] == 2
+
+
+@pytest.mark.parametrize(
+    ("change", "word"),
+    [
+        ({"conic_fov": True}, "conic_fov"),
+        ({"prob_obs_enemy": 0.0}, "prob_obs_enemy"),
+        ({"map_name": "10gen_protoss_big"}, "10gen_protoss"),
+        ({"capability_config": {"n_units": 5, "attack": {}}}, "capability_config.attack"),
+        ({"capability_config": {"n_units": 5, "team_gen": {"dist_type": "fixed"}}},
+         "weighted_teams"),
+    ],
+)  # fmt: skip
+def test_smacv2_options_skirmish_lacks_are_named(shim_smacv2, change, word):
+    wrapper = importlib.import_module("smacv2.env.starcraft2.wrapper")
+    with pytest.raises(EnvError, match=word):
+        wrapper.StarCraftCapabilityEnvWrapper(**{**SMACV2_PROTOSS_5, **change})
