@@ -112,9 +112,11 @@ class SkirmishVecEnv:
         self._cache = {}
 
     def step(
-        self, actions: np.ndarray, active: np.ndarray | None = None
+        self, actions: np.ndarray, active: np.ndarray | None = None, unchecked: bool = False
     ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
-        """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step."""
+        """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step.
+        `unchecked`: give the actions as orders without checking them against the available
+        actions (SMAC's heuristic_ai orders attacks on units out of range, which chase)."""
         M, N = self.num_envs, self.st.N
         active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M).copy()
         if (active & self.done).any():
@@ -122,6 +124,8 @@ class SkirmishVecEnv:
             raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
         acts = np.ascontiguousarray(actions, np.int64).reshape(M, N)
         avail = self.get_avail_actions()
+        if unchecked:
+            avail = np.ones_like(avail)
         b = self.battle
         bad = set_orders(acts, active, avail, N, b.rid, b.rosters.agent_healer,
                          self.cfg.move_amount, b.f, b.g, self.last_action)  # fmt: skip

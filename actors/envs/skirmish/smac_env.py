@@ -17,18 +17,22 @@ Keywords, by what they do here:
   `reward_death_value`, `reward_win`, `reward_defeat`, `reward_scale`, `reward_scale_rate`
   (layouts in `variants.py`, rewards in `config.SkirmishConfig`); `replay_dir` and
   `replay_prefix` (where `save_replay` writes its GIF); `debug` (actions and rewards are
-  logged at DEBUG level).
+  logged at DEBUG level); `heuristic_ai` and `heuristic_rest` (SMAC's scripted allies:
+  each agent keeps attacking the nearest enemy until it dies, a marauder never picks a
+  medivac, a medivac heals the nearest hurt ally; the actions passed to `step` are ignored
+  and overwritten in place with the ones taken, as SMAC does; with heuristic_rest an agent
+  whose target is out of range moves towards it instead). A medivac without a hurt ally
+  stops (SMAC leaves its last order running).
 * StarCraft II's alone, accepted and without effect: `game_version`, `window_size_x`,
   `window_size_y`, `difficulty` (checked against SMAC's levels "1"-"9", "A"; skirmish's
-  enemy is one scripted attack-move AI at every level), `heuristic_rest` (SMAC ignores it
-  without heuristic_ai).
+  enemy is one scripted attack-move AI at every level).
 * Not available, an EnvError naming the keyword: `obs_pathing_grid=True` and
-  `obs_terrain_height=True` (skirmish maps are open and flat: no grid, no heights) and
-  `heuristic_ai=True` (not implemented).
+  `obs_terrain_height=True` (skirmish maps are open and flat: no grid, no heights).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -49,7 +53,6 @@ REPLAY_EPISODES = 10  # episodes kept for save_replay (older ones are dropped)
 UNAVAILABLE = {
     "obs_pathing_grid": "skirmish maps are open fields: there is no pathing grid",
     "obs_terrain_height": "skirmish maps are flat: there are no terrain heights",
-    "heuristic_ai": "SMAC's heuristic allies are not implemented in skirmish",
 }
 # The SMAC keywords that become SkirmishConfig fields under the same name.
 CONFIG_KEYS = (
@@ -250,6 +253,7 @@ class StarCraft2Env(MultiAgentEnv):
         self.vec.reset()
         self._episode_steps = 0
         self.last_action = np.zeros((self.n_agents, self.n_actions))
+        self.heuristic_targets: list[int | None] = [None] * self.n_agents
         from actors.envs.skirmish.render import dynamics, statics
 
         self._replays.append({"statics": statics(self.vec), "frames": [dynamics(self.vec)]})
@@ -262,8 +266,16 @@ class StarCraft2Env(MultiAgentEnv):
         acts = np.array([int(a) for a in actions], np.int64)
         if acts.shape != (self.n_agents,):
             raise EnvError(f"expected {self.n_agents} actions (one per agent), got {acts.size}")
-        reward, term, infos = self.vec.step(acts[None], np.ones(1, bool))
         self.last_action = np.eye(self.n_actions)[acts]
+        if self.heuristic_ai:
+            taken = self._heuristic_actions()
+            with contextlib.suppress(TypeError, ValueError, IndexError):
+                for i, a in enumerate(taken.tolist()):
+                    actions[i] = a  # SMAC writes the heuristic's actions back
+            reward, term, infos = self.vec.step(taken[None], np.ones(1, bool), unchecked=True)
+            self.vec.last_action[0] = self.last_action  # SMAC's last action: the one passed
+        else:
+            reward, term, infos = self.vec.step(acts[None], np.ones(1, bool))
         self._episode_steps += 1
         self._total_steps += 1
         alive = self.vec.battle.alive[0]
@@ -285,6 +297,38 @@ class StarCraft2Env(MultiAgentEnv):
             log.debug("step %d actions %s reward %.4f", self._episode_steps, acts.tolist(),
                       self.reward)  # fmt: skip
         return self.reward, bool(term[0]), info
+
+    def _heuristic_actions(self) -> np.ndarray:
+        """SMAC's heuristic_ai: each agent's action [N] (see the module docstring)."""
+        b, N = self.vec.battle, self.n_agents
+        ro, alive, hp = b.roster(0), b.alive[0], b.hp[0]
+        _, _, dist = b.pairwise()
+        avail = self.vec.get_avail_actions()[0]
+        out = np.zeros(N, np.int64)
+        for i in range(N):
+            if not alive[i]:
+                continue
+            medivac = ro.names[i] == "medivac"
+            t = self.heuristic_targets[i]
+            u = None if t is None else (t if medivac else N + t)
+            if u is None or not alive[u] or (medivac and hp[u] >= ro.hp_max[u]):
+                if medivac:
+                    ok = [v for v in range(min(N, self.n_enemies)) if ro.names[v] != "medivac"
+                          and alive[v] and hp[v] < ro.hp_max[v]]  # fmt: skip
+                else:
+                    skip = ro.names[i] == "marauder"
+                    ok = [v for v in range(N, N + self.n_enemies)
+                          if alive[v] and not (skip and ro.names[v] == "medivac")]  # fmt: skip
+                u = min(ok, key=lambda v: dist[0, i, v]) if ok else None
+                self.heuristic_targets[i] = None if u is None else (u if medivac else u - N)
+            if u is None:
+                continue  # no-op: the unit stops
+            a = 6 + int(self.heuristic_targets[i])
+            if self.heuristic_rest and not avail[i, a]:  # out of range: move towards it
+                dx, dy = b.x[0, u] - b.x[0, i], b.y[0, u] - b.y[0, i]
+                a = (4 if dx > 0 else 5) if abs(dx) > abs(dy) else (2 if dy > 0 else 3)
+            out[i] = a
+        return out
 
     # -- views ---------------------------------------------------------------------------
     def get_obs(self) -> list[np.ndarray]:

@@ -248,7 +248,6 @@ def test_reward_keywords_scale_a_won_episode():
     [
         ({"obs_pathing_grid": True}, "obs_pathing_grid"),
         ({"obs_terrain_height": True}, "obs_terrain_height"),
-        ({"heuristic_ai": True}, "heuristic_ai"),
         ({"difficulty": "11"}, "difficulty"),
         ({"step_mul": 0}, "step_mul"),
         ({"reward_negative_scale": -1}, "reward_negative_scale"),
@@ -261,9 +260,32 @@ def test_values_skirmish_cannot_honour_raise_naming_the_keyword(kw, word):
         StarCraft2Env(**{"map_name": "3m", **kw})
 
 
+def test_heuristic_ai_attacks_the_nearest_enemy_and_writes_its_actions_back():
+    env = StarCraft2Env(map_name="3m", heuristic_ai=True, seed=0)
+    env.reset()
+    b = env.vec.battle
+    _, _, dist = b.pairwise()
+    acts = [1, 1, 1]
+    env.step(acts)
+    assert acts == (6 + dist[0, :3, 3:].argmin(1)).tolist()  # attack orders, out of range too
+    assert (b.order[0, :3] == 2).all()  # ATTACK: they chase their targets
+    np.testing.assert_array_equal(env.last_action, np.eye(9)[[1, 1, 1]])  # SMAC: the passed
+    targets = list(env.heuristic_targets)
+    for _ in range(3):
+        env.step([1, 1, 1])
+        kept = [t for t in targets if b.alive[0, 3 + t]]
+        assert all(env.heuristic_targets[i] == t for i, t in enumerate(targets) if t in kept)
+    rest = StarCraft2Env(map_name="3m", heuristic_ai=True, heuristic_rest=True, seed=0)
+    rest.reset()
+    acts = [1, 1, 1]
+    rest.step(acts)
+    assert acts == [4, 4, 4]  # 10 cells apart, out of range: move east towards the target
+
+
 def test_starcraft_only_keywords_are_accepted(tmp_path):
     kw = dict(game_version="4.10", difficulty="A", window_size_x=640, window_size_y=480,
               heuristic_rest=True, debug=True, replay_dir=str(tmp_path))  # fmt: skip
+    # (heuristic_rest without heuristic_ai changes nothing, as in SMAC)
     env = StarCraft2Env(map_name="3m", seed=0, **kw)
     ref = StarCraft2Env(map_name="3m", seed=0)
     np.testing.assert_array_equal(env.reset()[1], ref.reset()[1])
