@@ -229,9 +229,9 @@ def draw_roster(st: Statics, rng: np.random.Generator) -> tuple:
     perm = np.array(order + list(range(N, N + E)))
     tidx, pos = tidx[perm], pos[perm]
     way_off = np.zeros((N + E, 2))
-    for k in np.unique(group):
-        members = N + np.flatnonzero(group == k)
-        way_off[members] = pos[members] - pos[members].mean(0)
+    size = np.bincount(group)[:, None]
+    centre = np.stack([np.bincount(group, weights=pos[N:, k]) for k in (0, 1)], 1)
+    way_off[N:] = pos[N:] - centre[group] / np.maximum(size[group], 1)
     point = spec.attack_point
     goal = np.array(point, np.float64) if point is not None else pos[:N].mean(0)
     return tidx, pos, way_off, goal
