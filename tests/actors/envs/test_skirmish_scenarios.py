@@ -226,3 +226,14 @@ def test_randomised_positions_with_fixed_unit_groups(tmp_path):
     assert venv.info.n_agents == 4 and venv.info.n_enemies == 6
     assert sorted(venv.battle.roster(0).names[:4]) == ["marine"] * 3 + ["medivac"]
     assert not np.allclose(venv.battle.x[0], venv.battle.x[1])
+
+
+def test_packaged_randomised_example_file():
+    from importlib import resources
+
+    path = resources.files("actors.envs.skirmish").joinpath("data/random_example.yaml")
+    venv = make_vec_env("skirmish/custom", 2, seed=0, map_file=str(path))
+    # 4 + 5 x 9 + 3 x 9 + 7 = 83; state 4 x 8 + 5 x 7 + 4 x 11 = 111.
+    assert (venv.info.obs_shape, venv.info.state_shape, venv.info.n_actions) == (83, 111, 11)
+    venv.reset()
+    assert len(venv.battle.roster(0).names) == 9
