@@ -245,6 +245,7 @@ class StarCraft2Env(MultiAgentEnv):
         self._episode_count = self._episode_steps = self._total_steps = 0
         self.force_restarts = 0
         self.last_action = np.zeros((self.n_agents, self.n_actions))
+        self.heuristic_targets: list[int | None] = [None] * self.n_agents
         self.reward = 0.0
 
     # -- episode -----------------------------------------------------------------------
@@ -253,7 +254,7 @@ class StarCraft2Env(MultiAgentEnv):
         self.vec.reset()
         self._episode_steps = 0
         self.last_action = np.zeros((self.n_agents, self.n_actions))
-        self.heuristic_targets: list[int | None] = [None] * self.n_agents
+        self.heuristic_targets = [None] * self.n_agents
         from actors.envs.skirmish.render import dynamics, statics
 
         self._replays.append({"statics": statics(self.vec), "frames": [dynamics(self.vec)]})
@@ -266,16 +267,16 @@ class StarCraft2Env(MultiAgentEnv):
         acts = np.array([int(a) for a in actions], np.int64)
         if acts.shape != (self.n_agents,):
             raise EnvError(f"expected {self.n_agents} actions (one per agent), got {acts.size}")
-        self.last_action = np.eye(self.n_actions)[acts]
-        if self.heuristic_ai:
+        if self.heuristic_ai and not self.vec.done[0]:
             taken = self._heuristic_actions()
             with contextlib.suppress(TypeError, ValueError, IndexError):
                 for i, a in enumerate(taken.tolist()):
                     actions[i] = a  # SMAC writes the heuristic's actions back
             reward, term, infos = self.vec.step(taken[None], np.ones(1, bool), unchecked=True)
-            self.vec.last_action[0] = self.last_action  # SMAC's last action: the one passed
         else:
             reward, term, infos = self.vec.step(acts[None], np.ones(1, bool))
+        self.last_action = np.eye(self.n_actions)[acts]
+        self.vec.last_action[0] = self.last_action  # SMAC's: the actions passed (heuristic_ai)
         self._episode_steps += 1
         self._total_steps += 1
         alive = self.vec.battle.alive[0]

@@ -368,3 +368,17 @@ def test_save_replay_writes_a_gif_of_the_episodes(tmp_path):
     with Image.open(path) as gif:
         assert gif.n_frames == 2 * (3 + 1)  # two episodes of 3 steps, plus their start
     assert env.save_replay() is None  # each call writes the episodes since the last one
+
+
+def test_bad_actions_raise_env_errors():
+    env = StarCraft2Env(map_name="3m", seed=0)
+    with pytest.raises(EnvError, match="finished episode"):
+        env.step([1, 1, 1])  # before reset
+    env.reset()
+    with pytest.raises(EnvError, match="expected 3 actions"):
+        env.step([1, 1])
+    with pytest.raises(EnvError, match="agent 0 cannot take action 0"):
+        env.step([0, 1, 1])
+    with pytest.raises(EnvError, match="agent 1 cannot take action 42"):
+        env.step([1, 42, 1])
+    np.testing.assert_array_equal(env.last_action, 0)  # nothing was taken
