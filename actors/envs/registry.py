@@ -13,7 +13,7 @@ from typing import Any
 
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
-from actors.envs.skirmish import builtin_map_names, make_skirmish, make_skirmish_vec
+from actors.envs.skirmish import builtin_map, builtin_map_names, make_skirmish, make_skirmish_vec
 from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
 
 
@@ -60,7 +60,8 @@ def _skirmish_specs() -> list[EnvSpec]:
         def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
             return make_skirmish_vec(num_envs, seed, map_name=name, **options)
 
-        return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, SMAC map {name}")
+        kind = "SMACv2-style randomised scenario" if builtin_map(name).randomised else "SMAC map"
+        return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, {kind} {name}")
 
     def make_custom(seed: int | None = None, map_file: str | None = None, **options: Any):
         return make_skirmish(seed, map_file=map_file, **options)

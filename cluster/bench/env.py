@@ -2,7 +2,7 @@
 side by side with JaxMARL's SMAX.
 
     credit bench env --env skirmish/3m --num-envs 64 --steps 2000 [--repeats 3] [--vs-smax]
-        [--smax-python /tmp/smaxvenv/bin/python] [--out results/bench/x.json]
+        [--smax-python /tmp/smaxvenv/bin/python] [--smax-map NAME] [--out results/bench/x.json]
 
 Each timed step reads observations, state and available actions, samples a uniformly random
 available action per agent and steps every env; finished envs are reset in place (the
@@ -11,7 +11,9 @@ warm-up; `env_steps_per_s` is the best block (the least disturbed by other load 
 machine), `env_steps_per_s_median` the median. `--vs-smax` runs `cluster/bench/smax_runner.py`
 (same map, number of envs, steps and repeats; JIT compile excluded; observations with
 SMAX's world state and available actions every step, like ours) with `--smax-python`
-(default: this Python, which then needs `jaxmarl`, the `smax` extra) and adds
+(default: this Python, which then needs `jaxmarl`, the `smax` extra) on SMAX's map of the
+same name, or for skirmish's SMACv2-style scenarios SMAX's randomised one of the same size
+(`SMAX_PAIRS`: protoss/terran/zerg_5_vs_5 -> smacv2_5_units, ...; `--smax-map` overrides), and adds
 `smax_env_steps_per_s` (best block), `smax_env_steps_per_s_median`, `ratio` (best / best)
 and `ratio_median`.
 """
@@ -40,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--vs-smax", action="store_true", help="also time JaxMARL SMAX, same map")
     p.add_argument("--smax-python", default=sys.executable, help="python that has jaxmarl")
+    p.add_argument("--smax-map", default=None, help="SMAX map (default: see smax_map_for)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.set_defaults(func=cmd_env)
 
@@ -96,6 +99,21 @@ def _reset_done(venv, done: np.ndarray) -> None:
         venv.reset()
 
 
+# skirmish's SMACv2-style scenarios -> SMAX's randomised scenarios of the same team sizes
+# (SMAX draws unit types from all of its six types and random start positions).
+SMAX_PAIRS = {
+    f"{race}_{n}_vs_{n}": f"smacv2_{n}_units"
+    for race in ("protoss", "terran", "zerg")
+    for n in (5, 10, 20)
+}
+
+
+def smax_map_for(env_id: str) -> str:
+    """SMAX's map to compare `env_id` with: its SMACv2 pair, else the same map name."""
+    name = env_id.split("/", 1)[1]
+    return SMAX_PAIRS.get(name, name)
+
+
 def time_smax(python: str, map_name: str, num_envs: int, steps: int, repeats: int = 1) -> dict:
     runner = Path(__file__).with_name("smax_runner.py")
     cmd = [python, str(runner), "--map", map_name, "--num-envs", str(num_envs)]
@@ -109,7 +127,7 @@ def time_smax(python: str, map_name: str, num_envs: int, steps: int, repeats: in
 def cmd_env(args: argparse.Namespace) -> int:
     figures = time_env(args.env, args.num_envs, args.steps, args.seed, args.repeats)
     if args.vs_smax:
-        map_name = args.env.split("/", 1)[1]
+        map_name = args.smax_map or smax_map_for(args.env)
         smax = time_smax(args.smax_python, map_name, args.num_envs, args.steps, args.repeats)
         figures.update(smax)
         figures["ratio"] = figures["env_steps_per_s"] / smax["smax_env_steps_per_s"]

@@ -27,3 +27,17 @@ def test_help_lists_the_commands(capsys):
         "demo",
     ):
         assert name in text
+
+
+def test_env_list_shows_the_randomised_scenarios(capsys):
+    import json
+
+    from cluster.cli import main
+
+    assert main(["env", "list", "--json"]) == 0
+    rows = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
+    for race in ("protoss", "terran", "zerg"):
+        for size in ("5_vs_5", "10_vs_10", "10_vs_11", "20_vs_20"):
+            assert rows[f"skirmish/{race}_{size}"]["episode_limit"] == 200
+    row = rows["skirmish/protoss_5_vs_5"]
+    assert (row["obs_shape"], row["state_shape"], row["n_actions"]) == (92, 130, 11)

@@ -4,8 +4,10 @@ and `SkirmishEnv` (one battle, SMAC's `StarCraft2Env` API, a drop-in for pymarl 
 Reward, termination and statistics follow SMAC: damage dealt to enemy health and shields
 plus `reward_death_value` per kill plus `reward_win` for a win, divided by
 `max_reward / reward_scale_rate` where max_reward = sum of enemy health and shields +
-death value x n_enemies + win reward, so a perfect episode returns 20. A timeout ends the
-episode (terminated True) with `info["episode_limit"] = True` and is not a win.
+death value x n_enemies + win reward, so a perfect episode returns 20 (SMAC's other reward
+keywords: see `SkirmishConfig`). On a randomised map max_reward is each episode's own
+(SMACv2 keeps the first episode's). A timeout ends the episode (terminated True) with
+`info["episode_limit"] = True` and is not a win.
 """
 
 from __future__ import annotations
@@ -16,9 +18,11 @@ from typing import Any
 import numpy as np
 
 from actors.envs.base import EnvError, EnvInfo
+from actors.envs.skirmish.config import SkirmishConfig
 from actors.envs.skirmish.kernels import outcome, set_orders
 from actors.envs.skirmish.sim import Battle, Statics
-from actors.envs.skirmish.spec import MapSpec, SkirmishConfig
+from actors.envs.skirmish.spec import MapSpec
+from actors.envs.skirmish.variants import Variant
 from actors.envs.skirmish.views import Layout, avail_actions, global_state, observations
 
 log = logging.getLogger(__name__)
@@ -52,26 +56,21 @@ class SkirmishVecEnv:
         self.spec, self.num_envs = spec, num_envs
         self.st = Statics(spec, self.cfg)
         self.lay = Layout(spec, self.st, self.cfg)
+        self.variant = Variant(self.lay, self.cfg, spec.episode_limit)
         self.battle = Battle(self.st, self.cfg, num_envs)
         self.info = EnvInfo(
             n_agents=self.st.N,
             n_actions=self.lay.n_actions,
-            obs_shape=self.lay.obs_dim,
-            state_shape=self.lay.state_dim,
+            obs_shape=self.variant.obs_dim,
+            state_shape=self.variant.state_dim,
             episode_limit=spec.episode_limit,
             has_wins=True,
             n_enemies=self.st.E,
         )
-        n_e = self.st.N
-        enemy_total = float((self.st.hp_max[n_e:] + self.st.sh_max[n_e:]).sum())
-        self.max_reward = (
-            enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
-        )
         cfg = self.cfg
-        scale = self.max_reward / cfg.reward_scale_rate if cfg.reward_scale else 0.0
         self._rp = np.array(
-            [cfg.reward_death_value, cfg.reward_win, cfg.reward_defeat, scale,
-             float(cfg.reward_only_positive)]
+            [cfg.reward_death_value, cfg.reward_win, cfg.reward_defeat, float(cfg.reward_scale),
+             float(cfg.reward_only_positive), cfg.reward_negative_scale, float(cfg.reward_sparse)]
         )  # fmt: skip
         self.seed(seed)
         M, N = num_envs, self.st.N
@@ -80,6 +79,12 @@ class SkirmishVecEnv:
         self.last_action = np.zeros((M, N, self.lay.n_actions), np.float32)
         self.stats = {"battles_won": 0, "battles_game": 0, "timeouts": 0}
         self._cache: dict[str, Any] = {}
+
+    @property
+    def max_reward(self) -> np.ndarray:
+        """[M] each battle's maximum episode return before scaling (SMAC's max_reward)."""
+        total = self.battle.rosters.enemy_total[self.battle.rid]
+        return total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
 
     def seed(self, seed: int | None = None) -> None:
         """Re-seed every env's generator (env k: seed + k); applies from the next reset."""
@@ -107,9 +112,11 @@ class SkirmishVecEnv:
         self._cache = {}
 
     def step(
-        self, actions: np.ndarray, active: np.ndarray | None = None
+        self, actions: np.ndarray, active: np.ndarray | None = None, unchecked: bool = False
     ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
-        """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step."""
+        """Apply `actions` [M, N] in the `active` [M] envs and advance them one agent step.
+        `unchecked`: give the actions as orders without checking them against the available
+        actions (SMAC's heuristic_ai orders attacks on units out of range, which chase)."""
         M, N = self.num_envs, self.st.N
         active = np.ones(M, bool) if active is None else np.asarray(active, bool).reshape(M).copy()
         if (active & self.done).any():
@@ -117,8 +124,11 @@ class SkirmishVecEnv:
             raise EnvError(f"env {k}: step() on a finished episode; call reset() first")
         acts = np.ascontiguousarray(actions, np.int64).reshape(M, N)
         avail = self.get_avail_actions()
-        bad = set_orders(acts, active, avail, N, self.lay.agent_healer, self.battle.g,
-                         self.last_action)  # fmt: skip
+        if unchecked:
+            avail = np.ones_like(avail)
+        b = self.battle
+        bad = set_orders(acts, active, avail, N, b.rid, b.rosters.agent_healer,
+                         self.cfg.move_amount, b.f, b.g, self.last_action)  # fmt: skip
         if bad >= 0:
             k, i = divmod(int(bad), N)
             valid = np.flatnonzero(avail[k, i]).tolist()
@@ -135,8 +145,11 @@ class SkirmishVecEnv:
         b, M, N = self.battle, self.num_envs, self.st.N
         reward = np.empty(M)
         term, won, timeout = np.empty(M, bool), np.empty(M, bool), np.empty(M, bool)
-        outcome(active, self.t, N, self.spec.episode_limit, self._rp, self.st.ui, b.f, b.alive,
-                before, reward, term, won, timeout)  # fmt: skip
+        ro = b.rosters
+        scale = ro.enemy_total + self.st.E * self.cfg.reward_death_value + self.cfg.reward_win
+        scale = scale / self.cfg.reward_scale_rate
+        outcome(active, self.t, N, self.spec.episode_limit, self._rp, scale, b.rid, ro.ui, b.f,
+                b.alive, before, reward, term, won, timeout)  # fmt: skip
         finished = term & active
         self.done |= finished
         self.stats["battles_game"] += int(finished.sum())
@@ -164,13 +177,19 @@ class SkirmishVecEnv:
     def get_obs(self) -> np.ndarray:
         if "obs" not in self._cache:
             avail = self.get_avail_actions()
-            self._cache["obs"] = observations(self.battle, self.lay, self.cfg, avail)
+            base = observations(self.battle, self.lay, avail)
+            self._cache["obs"] = self.variant.obs(base, self.last_action, self.t)
         return self._cache["obs"]
 
     def get_state(self) -> np.ndarray:
         if "state" not in self._cache:
-            last = self.last_action if self.cfg.state_last_action else None
-            self._cache["state"] = global_state(self.battle, self.lay, last)
+            if self.cfg.obs_instead_of_state:
+                base = None
+            else:
+                last = self.last_action if self.cfg.state_last_action else None
+                base = global_state(self.battle, self.lay, last)
+            obs = self.get_obs() if self.cfg.obs_instead_of_state else None
+            self._cache["state"] = self.variant.state(base, obs, self.t)
         return self._cache["state"]
 
     def get_stats(self) -> dict[str, Any]:

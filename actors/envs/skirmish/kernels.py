@@ -3,12 +3,14 @@ sub-steps of one agent step (no per-step NumPy temporaries, no Python per unit).
 
 Data layout (built by `sim.Statics` / `sim.Battle`; unit u < N is agent u, else enemy u - N):
 
-* uf [U, N_UF] float per-unit stats (columns HP_MAX ... SPLASH_W; WAY_DX/DY: an enemy's
-  offset from its side's centre at the start, kept on the way), ui [U, N_UI] int
-  (TEAM, KIND, HEALABLE, THREAT), hit [2, U, U] damage of one attack of i on j to (health after
-  armour, shields), can_hit [U, U] (foe and a weapon that reaches it: ground / air),
-  collide [U, U]; par [N_PAR] scalars (P_LOOPS ... P_ARRIVE).
-* f [M, N_F, U] float state (X, Y, HP, SH, CD, EN, SINCE), g [M, N_G, U] int state (ORDER,
+* Per roster r (battle m uses r = rid[m]; `sim.Rosters`): uf [R, U, N_UF] float per-unit
+  stats (columns HP_MAX ... SPLASH_W; WAY_DX/DY: an enemy's offset from its group's centre
+  at the start, kept on the way), ui [R, U, N_UI] int (TEAM, KIND, HEALABLE, THREAT), hit
+  [R, 2, U, U] damage of one attack of i on j to (health after armour, shields), can_hit
+  [R, U, U] (foe and a weapon that reaches it: ground / air), collide [R, U, U]. The
+  per-sub-step helpers take one roster's 2-D slices. par [N_PAR] scalars (P_LOOPS ...).
+* f [M, N_F, U] float state (X, Y, HP, SH, CD, EN, SINCE, REM: distance left of a move
+  order, which ends `move_amount` away as in SMAC), g [M, N_G, U] int state (ORDER,
   OTGT: target unit index, MDIR: move action 2-5, ARRIVED, LAST_TGT), alive [M, U],
   way [M, 2] the point the scripted enemy attack-moves to (the agents' spawn).
 
@@ -36,8 +38,8 @@ HEAL, HP_PER_EN, SPLASH_R, SPLASH_LEN, SPLASH_W, WAY_DX, WAY_DY = range(8, 15)
 N_UF = 15
 TEAM, KIND, HEALABLE, THREAT = range(4)
 N_UI = 4
-X, Y, HP, SH, CD, EN, SINCE = range(7)
-N_F = 7
+X, Y, HP, SH, CD, EN, SINCE, REM = range(8)
+N_F = 8
 ORDER, OTGT, MDIR, ARRIVED, LAST_TGT = range(5)
 N_G = 5
 P_LOOPS, P_MAP_W, P_MAP_H, P_REGEN_DELAY, P_REGEN, P_ACQUIRE, P_ARRIVE, P_DODGE = range(8)
@@ -50,7 +52,8 @@ _DY = np.array([0.0, 0.0, 1.0, -1.0, 0.0, 0.0])
 
 
 @njit(cache=True)
-def advance(active, n_sub, N, par, uf, ui, hit, can_hit, collide, f, g, alive, way, before):
+def advance(active, n_sub, N, par, rid, ufs, uis, hits, can_hits, collides, f, g, alive, way,
+            before):  # fmt: skip
     """Run `n_sub` sub-steps in every active battle; `before` [M, 4] receives each battle's
     (enemy health + shields, ally health + shields, dead enemies, dead allies) beforehand."""
     M, U = alive.shape
@@ -66,6 +69,8 @@ def advance(active, n_sub, N, par, uf, ui, hit, can_hit, collide, f, g, alive, w
     for m in range(M):
         if not active[m]:
             continue
+        r = rid[m]
+        uf, ui, hit, can_hit, collide = ufs[r], uis[r], hits[r], can_hits[r], collides[r]
         before[m, :] = 0.0
         for u in range(U):
             side = 0 if u >= N else 1
@@ -350,8 +355,10 @@ def _move(m, par, uf, f, g, alive, way, dist, tgt, mode, fire, nx, ny):
             ny[u] = y - (f[m, Y, t] - y) / d * step
         elif mode[u] == M_DIR:
             k = g[m, MDIR, u]
-            nx[u] = x + _DX[k] * step
-            ny[u] = y + _DY[k] * step
+            s = min(step, f[m, REM, u])
+            nx[u] = x + _DX[k] * s
+            ny[u] = y + _DY[k] * s
+            f[m, REM, u] -= s
         elif mode[u] == M_WAY:
             wx, wy = way[m, 0] + uf[u, WAY_DX] - x, way[m, 1] + uf[u, WAY_DY] - y
             d = max(math.sqrt(wx * wx + wy * wy), 1e-9)
@@ -395,35 +402,41 @@ def _separate(m, par, uf, collide, f, alive, nx, ny):
 
 
 @njit(cache=True)
-def reset_battles(envs, draws, jitter, start_pos, goal, team, uf, energy_start, f, g, alive, way):
-    """Put battles `envs` at their start. draws [k, 4 + 2U] uniform [0, 1) per env: each
-    side's formation shift (jitter[0]) then a per-unit offset (jitter[1])."""
+def reset_battles(envs, draws, jitter, rid, start_pos, goal, team, uf, energy_start, f, g, alive,
+                  way):  # fmt: skip
+    """Put battles `envs` at their start (their roster's start_pos [R, U, 2], goal [R, 2]).
+    draws [k, 4 + 2U] uniform [0, 1) per env: each side's formation shift (jitter[0]) then
+    a per-unit offset (jitter[1])."""
     U = alive.shape[1]
-    for r in range(envs.shape[0]):
-        m = envs[r]
-        d = draws[r]
+    for k in range(envs.shape[0]):
+        m = envs[k]
+        d = draws[k]
+        r = rid[m]
         for u in range(U):
             side = team[u]
             dx = (2 * d[2 * side] - 1) * jitter[0] + (2 * d[4 + 2 * u] - 1) * jitter[1]
             dy = (2 * d[2 * side + 1] - 1) * jitter[0] + (2 * d[5 + 2 * u] - 1) * jitter[1]
-            f[m, X, u] = min(max(start_pos[u, 0] + dx, 0.0), jitter[2])
-            f[m, Y, u] = min(max(start_pos[u, 1] + dy, 0.0), jitter[3])
-            f[m, HP, u] = uf[u, HP_MAX]
-            f[m, SH, u] = uf[u, SH_MAX]
+            f[m, X, u] = min(max(start_pos[r, u, 0] + dx, 0.0), jitter[2])
+            f[m, Y, u] = min(max(start_pos[r, u, 1] + dy, 0.0), jitter[3])
+            f[m, HP, u] = uf[r, u, HP_MAX]
+            f[m, SH, u] = uf[r, u, SH_MAX]
             f[m, CD, u] = 0.0
-            f[m, EN, u] = energy_start[u]
+            f[m, EN, u] = energy_start[r, u]
             f[m, SINCE, u] = 0.0
+            f[m, REM, u] = 0.0
             alive[m, u] = True
             g[m, :, u] = 0
             g[m, OTGT, u] = -1
             g[m, LAST_TGT, u] = -1
-        way[m, 0] = goal[0] + (2 * d[0] - 1) * jitter[0]
-        way[m, 1] = goal[1] + (2 * d[1] - 1) * jitter[0]
+        way[m, 0] = goal[r, 0] + (2 * d[0] - 1) * jitter[0]
+        way[m, 1] = goal[r, 1] + (2 * d[1] - 1) * jitter[0]
 
 
 @njit(cache=True)
-def set_orders(acts, active, avail, N, agent_healer, g, last_action):
-    """Check every active agent's action against `avail` and turn actions into orders.
+def set_orders(acts, active, avail, N, rid, agent_healer, move_amount, f, g, last_action):
+    """Check every active agent's action against `avail` and turn actions into orders
+    (agent_healer [R, N]: a healer's target index is an ally's; a move order goes
+    `move_amount` far).
 
     Returns -1, or m * N + i of the first unavailable action (then nothing is changed).
     """
@@ -438,27 +451,32 @@ def set_orders(acts, active, avail, N, agent_healer, g, last_action):
     for m in range(M):
         if not active[m]:
             continue
+        healer = agent_healer[rid[m]]
         for i in range(N):
             a = acts[m, i]
             g[m, ORDER, i] = ATTACK if a >= 6 else (MOVE if a >= 2 else IDLE)
-            g[m, OTGT, i] = -1 if a < 6 else (a - 6 if agent_healer[i] else N + a - 6)
+            g[m, OTGT, i] = -1 if a < 6 else (a - 6 if healer[i] else N + a - 6)
             g[m, MDIR, i] = a if 2 <= a <= 5 else 0
+            f[m, REM, i] = move_amount if 2 <= a <= 5 else 0.0
             last_action[m, i, :] = 0.0
             last_action[m, i, a] = 1.0
     return -1
 
 
 @njit(cache=True)
-def outcome(active, t, N, limit, rp, ui, f, alive, before, reward, term, won, timeout):
+def outcome(active, t, N, limit, rp, scale, rid, uis, f, alive, before, reward, term, won,
+            timeout):  # fmt: skip
     """SMAC's reward and end of episode per battle after a step.
 
-    rp = (death value, win reward, defeat reward, scale divisor or 0, only positive 0/1).
+    rp = (death value, win reward, defeat reward, reward_scale 0/1, only positive 0/1,
+    negative scale, sparse 0/1); scale [R] = max_reward / reward_scale_rate per roster.
     """
     M, U = alive.shape
     for m in range(M):
         reward[m], won[m], timeout[m], term[m] = 0.0, False, False, True
         if not active[m]:
             continue
+        ui = uis[rid[m]]
         hs = np.zeros(2)
         dead = np.zeros(2)
         fight = np.zeros(2, np.bool_)
@@ -470,17 +488,19 @@ def outcome(active, t, N, limit, rp, ui, f, alive, before, reward, term, won, ti
             elif ui[u, KIND] != HEALER:
                 fight[side] = True
         r = before[m, 0] - hs[0] + rp[0] * (dead[0] - before[m, 2])
-        if rp[4] > 0:
+        if rp[6] > 0:
+            r = 0.0
+        elif rp[4] > 0:
             r = abs(r)
         else:
-            r -= 0.5 * (before[m, 1] - hs[1] + rp[0] * (dead[1] - before[m, 3]))
+            r -= rp[5] * (before[m, 1] - hs[1] + rp[0] * (dead[1] - before[m, 3]))
         w = fight[1] and not fight[0]
         ended = not (fight[0] and fight[1])
         if w:
-            r += rp[1]
-        elif fight[0]:
-            r += rp[2] if ended else 0.0
+            r = 1.0 if rp[6] > 0 else r + rp[1]
+        elif fight[0] and ended:
+            r = -1.0 if rp[6] > 0 else r + rp[2]
         to = not ended and t[m] >= limit
         if rp[3] > 0:
-            r /= rp[3]
+            r /= scale[rid[m]]
         reward[m], won[m], timeout[m], term[m] = r, w, to, ended or to

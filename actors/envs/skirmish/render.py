@@ -31,45 +31,89 @@ MARKERS = {
 }
 
 
-def _frame(venv: SkirmishVecEnv, title: str) -> np.ndarray:
+def statics(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
+    """What stays fixed during an episode of battle m: its units and the map."""
+    ro = venv.battle.roster(m)
+    return {
+        "names": ro.names, "team": ro.team, "radius": ro.radius, "hp_max": ro.hp_max,
+        "sh_max": ro.sh_max, "map": (venv.st.map_w, venv.st.map_h),
+    }  # fmt: skip
+
+
+def dynamics(venv: SkirmishVecEnv, m: int = 0) -> dict[str, np.ndarray]:
+    """Battle m's unit state now (copied): x, y, hp, sh, alive, tgt (last target, -1 none)."""
+    b = venv.battle
+    return {
+        "x": b.x[m].copy(), "y": b.y[m].copy(), "hp": b.hp[m].copy(), "sh": b.sh[m].copy(),
+        "alive": b.alive[m].copy(), "tgt": b.last_tgt[m].copy(),
+    }  # fmt: skip
+
+
+def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
+    """What a frame of battle m shows (`statics` and `dynamics`), so it can be drawn later."""
+    return {**statics(venv, m), **dynamics(venv, m)}
+
+
+def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:
+    """An RGB image [H, W, 3] (uint8) of a `snapshot`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    b, st = venv.battle, venv.st
+    s, team, names = snap, snap["team"], snap["names"]
     fig, ax = plt.subplots(figsize=(5, 5), dpi=80)
-    ax.set_xlim(0, st.map_w)
-    ax.set_ylim(0, st.map_h)
+    ax.set_xlim(0, s["map"][0])
+    ax.set_ylim(0, s["map"][1])
     ax.set_aspect("equal")
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=6)
-    for u in range(st.U):
-        if b.last_fire[0, u] and b.last_tgt[0, u] >= 0:
-            t = b.last_tgt[0, u]
-            color = "tab:green" if st.team[u] == st.team[t] else "orange"
-            ax.plot([b.x[0, u], b.x[0, t]], [b.y[0, u], b.y[0, t]], color=color, lw=0.8)
-    for u in range(st.U):
-        x, y = b.x[0, u], b.y[0, u]
-        if not b.alive[0, u]:
+    for u, t in enumerate(s["tgt"].tolist()):
+        if t >= 0:
+            color = "tab:green" if team[u] == team[t] else "orange"
+            ax.plot([s["x"][u], s["x"][t]], [s["y"][u], s["y"][t]], color=color, lw=0.8)
+    for u in range(len(names)):
+        x, y = s["x"][u], s["y"][u]
+        if not s["alive"][u]:
             ax.plot(x, y, "x", color="0.7", ms=3)
             continue
-        color = "tab:blue" if st.team[u] == 0 else "tab:red"
-        size = 4 + 8 * st.radius[u]
-        ax.plot(x, y, MARKERS.get(st.names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
-        frac = b.hp[0, u] / st.hp_max[u]
+        color = "tab:blue" if team[u] == 0 else "tab:red"
+        size = 4 + 8 * s["radius"][u]
+        ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
+        frac = s["hp"][u] / s["hp_max"][u]
         ax.plot([x - 0.5, x - 0.5 + frac], [y + 0.7, y + 0.7], color="limegreen", lw=1.5)
-        if st.sh_max[u] > 0:
-            sf = b.sh[0, u] / st.sh_max[u]
+        if s["sh_max"][u] > 0:
+            sf = s["sh"][u] / s["sh_max"][u]
             ax.plot([x - 0.5, x - 0.5 + sf], [y + 0.9, y + 0.9], color="cyan", lw=1.2)
     handles = [
-        ax.plot([], [], MARKERS.get(n, "o"), color="0.4", label=n)[0] for n in sorted(set(st.names))
+        ax.plot([], [], MARKERS.get(n, "o"), color="0.4", label=n)[0] for n in sorted(set(names))
     ]
     ax.legend(handles=handles, loc="lower left", fontsize=6, framealpha=0.6)
     fig.canvas.draw()
     img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
     return img
+
+
+def write_images(frames: list[np.ndarray], out: str | Path) -> Path:
+    """`.gif`: an animation of `frames`; anything else: a strip of up to 8 of them."""
+    from PIL import Image
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    images = [Image.fromarray(f) for f in frames]
+    if out.suffix.lower() == ".gif":
+        images[0].save(out, save_all=True, append_images=images[1:], duration=150, loop=0)
+    else:
+        step = max(1, len(images) // 8)
+        pick = images[::step][:8]
+        w, h = pick[0].size
+        strip = Image.new("RGB", (w * len(pick), h), "white")
+        for i, im in enumerate(pick):
+            strip.paste(im, (i * w, 0))
+        strip.save(out)
+    log.info("wrote %s (%d frames)", out, len(frames))
+    return out
 
 
 def render_episode(
@@ -91,36 +135,21 @@ def render_episode(
     Returns:
         {"out", "frames", "battle_won", "steps", "return"}.
     """
-    from PIL import Image
-
     venv = make_vec_env(env_id, 1, seed=seed, **env_args)
     if not isinstance(venv, SkirmishVecEnv):
         raise ValueError(f"render needs a skirmish env, got {env_id}")
     act = POLICIES[policy]
     rng = np.random.default_rng(seed)
     venv.reset()
-    frames = [_frame(venv, f"{env_id}  t=0")]
+    frames = [draw_frame(snapshot(venv), f"{env_id}  t=0")]
     ret, won, t = 0.0, False, 0
     while t < max_steps:
         r, term, infos = venv.step(act(venv, rng), np.ones(1, bool))
         t += 1
         ret += float(r[0])
-        frames.append(_frame(venv, f"{env_id}  t={t}  return={ret:.1f}"))
+        frames.append(draw_frame(snapshot(venv), f"{env_id}  t={t}  return={ret:.1f}"))
         if term[0]:
             won = bool(infos[0]["battle_won"])
             break
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    images = [Image.fromarray(f) for f in frames]
-    if out.suffix.lower() == ".gif":
-        images[0].save(out, save_all=True, append_images=images[1:], duration=150, loop=0)
-    else:
-        step = max(1, len(images) // 8)
-        pick = images[::step][:8]
-        w, h = pick[0].size
-        strip = Image.new("RGB", (w * len(pick), h), "white")
-        for i, im in enumerate(pick):
-            strip.paste(im, (i * w, 0))
-        strip.save(out)
-    log.info("wrote %s (%d frames)", out, len(frames))
+    out = write_images(frames, out)
     return {"out": str(out), "frames": len(frames), "battle_won": won, "steps": t, "return": ret}

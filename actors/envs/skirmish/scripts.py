@@ -54,11 +54,12 @@ def _advance(venv: SkirmishVecEnv) -> np.ndarray:
     """Move toward the nearest enemy; but before contact (no enemy within shoot range of any
     agent) hold once an enemy is in sight, so the enemy walks into range rather than
     getting the first volley."""
-    b, N, cfg = venv.battle, venv.st.N, venv.cfg
+    b, N, ro = venv.battle, venv.st.N, venv.battle.rosters
     _, _, dist = venv.pairwise()
     d = np.where(b.alive[:, None, N:] & b.alive[:, :N, None], dist[:, :N, N:], np.inf)
-    seen = (d < cfg.sight_range).any(-1)
-    contact = (d <= cfg.shoot_range).any((1, 2))
+    sight, shoot = ro.sight[b.rid][..., None], ro.shoot[b.rid][..., None]  # [M, N, 1]
+    seen = (d < sight).any(-1)
+    contact = (d <= shoot).any((1, 2))
     return np.where(seen & ~contact[:, None], 1, _toward(venv, 1.0))
 
 
@@ -83,12 +84,13 @@ def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray
 def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
     """Banelings charge the nearest enemy; zerglings step back (away from the nearest enemy)
     while any baneling, ours or the enemy's, lives, then attack the nearest enemy."""
-    b, st, N = venv.battle, venv.st, venv.st.N
+    b, N = venv.battle, venv.st.N
     nearest = nearest_policy(venv, rng)
-    is_bane = st.kind[:N] == KINDS.index("baneling")
-    banes_alive = (b.alive & (st.kind == KINDS.index("baneling"))[None]).any(1)
+    bane = b.kind == KINDS.index("baneling")  # [M, U]
+    is_bane = bane[:, :N]
+    banes_alive = (b.alive & bane).any(1)
     back = _toward(venv, -1.0)
-    step_back = ~is_bane[None] & banes_alive[:, None]
+    step_back = ~is_bane & banes_alive[:, None]
     acts = np.where(step_back, back, nearest)
     dead = venv.get_avail_actions()[:, :, 0] > 0
     return np.where(dead, 0, acts)

@@ -1,4 +1,4 @@
-"""Unit types, map specifications (built-in and custom YAML files) and the env config.
+"""Unit types and map specifications (built-in and custom YAML files).
 
 A map file holds one map; the built-in maps live in `data/maps.yaml` with the same schema,
 keyed by name. Every field of a map (see `MAP_FIELDS`) is checked, and an error names the
@@ -7,8 +7,7 @@ field and the file.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -18,6 +17,13 @@ import numpy as np
 import yaml
 
 from actors.envs.base import EnvError
+from actors.envs.skirmish.scenario import (
+    StartPositions,
+    TeamGen,
+    parse_start_positions,
+    parse_team_gen,
+    place,
+)
 
 LOOPS_PER_SECOND = 22.4  # SC2 game loops per second at "faster" speed
 KINDS = ("ranged", "melee", "baneling", "healer", "colossus")
@@ -30,11 +36,19 @@ MAP_FIELDS = {
     "unit_type_bits": "length of the type one-hot (default: number of types if > 1, else 0)",
     "attack_point": "[x, y] the enemy attack-moves to (default: the agents' spawn centre)",
     "formation": "'line' (default): groups in lines abreast facing along x; 'blob': SC2's spawn",
+    "team_gen": "unit types drawn per episode (SMACv2's weighted_teams; replaces allies/enemies)",
+    "n_units": "number of agents of a team_gen map (int >= 1)",
+    "n_enemies": "number of enemies of a team_gen map (default: n_units)",
+    "start_positions": "start positions drawn per episode: {mode: surrounded | reflect | "
+    "surrounded_and_reflect, p: P(reflect)}",
+    "obs_own_pos": "agents observe their own [x, y] / map size (SMACv2's obs_own_pos)",
+    "unit_ranges": "each unit's own sight and attack range (SMACv2's use_unit_ranges)",
+    "min_attack_range": "with unit_ranges: the least shoot range of an agent (default 2)",
 }
 GROUP_FIELDS = {
     "type": "unit type name",
     "count": "number of units (int >= 0)",
-    "at": "[x, y] spawn point (see the map's 'formation')",
+    "at": "[x, y] spawn point (see the map's 'formation'); omitted with start_positions",
     "positions": "explicit [[x, y], ...], one per unit (instead of 'at')",
 }
 
@@ -66,6 +80,7 @@ class UnitType:
     splash_radius: float = 0.0
     splash_half_length: float = 0.0
     splash_half_width: float = 0.0
+    sight: float = 9.0
 
     def hit_vs(self, victim: UnitType) -> tuple[float, float]:
         """Damage of one attack to `victim`: (to health after armour, to shields)."""
@@ -103,11 +118,17 @@ class MapSpec:
     Attributes:
         name: map name.
         episode_limit: agent steps before the episode is cut.
-        allies / enemies: one `UnitGroup` per unit type block.
+        allies / enemies: one `UnitGroup` per unit type block (empty with `team_gen`; no
+            positions with `start_positions`).
         map_size: (width, height) of the playable area.
         ally_types / enemy_types: unit-type one-hot order of each side.
         unit_type_bits: length of the one-hot (0 when the map has a single type).
         attack_point: where the scripted enemy attack-moves to (None: the agents' centre).
+        team_gen: unit types drawn per episode (scenario.TeamGen), or None.
+        start_positions: start positions drawn per episode (scenario.StartPositions), or None.
+        own_pos: agents observe their own position (SMACv2's obs_own_pos).
+        unit_ranges: each unit's own sight and attack range (SMACv2's use_unit_ranges), the
+            attack range at least `min_attack_range`.
     """
 
     name: str
@@ -119,14 +140,40 @@ class MapSpec:
     enemy_types: tuple[str, ...]
     unit_type_bits: int
     attack_point: tuple[float, float] | None = None
+    team_gen: TeamGen | None = None
+    start_positions: StartPositions | None = None
+    own_pos: bool = False
+    unit_ranges: bool = False
+    min_attack_range: float = 2.0
+
+    @property
+    def randomised(self) -> bool:
+        """Whether each episode draws its own units or positions."""
+        return self.team_gen is not None or self.start_positions is not None
 
     @property
     def n_agents(self) -> int:
+        if self.team_gen is not None:
+            return self.team_gen.n_units
         return sum(g.count for g in self.allies)
 
     @property
     def n_enemies(self) -> int:
+        if self.team_gen is not None:
+            return self.team_gen.n_enemies
         return sum(g.count for g in self.enemies)
+
+    def side_pool(self, side: str) -> tuple[str, ...]:
+        """The unit types that can appear on `side` ("allies" or "enemies"), sorted."""
+        if self.team_gen is not None:
+            return tuple(sorted(self.team_gen.unit_types))
+        groups = self.allies if side == "allies" else self.enemies
+        return tuple(sorted({g.type for g in groups if g.count}))
+
+    @property
+    def pool(self) -> tuple[str, ...]:
+        """Every unit type of the map, sorted (the rows of its type table)."""
+        return tuple(sorted(set(self.side_pool("allies")) | set(self.side_pool("enemies"))))
 
 
 def _line(at: tuple[float, float], count: int, radius: float, facing: float) -> list:
@@ -141,38 +188,8 @@ def _line(at: tuple[float, float], count: int, radius: float, facing: float) -> 
     return out
 
 
-def _ring_points(step: float = 0.05, max_r: float = 12.0) -> np.ndarray:
-    """Candidate offsets [K, 2] ordered by distance from the origin (then by angle)."""
-    pts = [(0.0, 0.0)]
-    for k in range(1, int(max_r / step) + 1):
-        r = k * step
-        n = max(6, int(2 * math.pi * r / step))
-        a = np.arange(n) * (2 * math.pi / n)
-        pts += list(zip(r * np.cos(a), r * np.sin(a), strict=True))
-    return np.array(pts)
-
-
-_RING = _ring_points()
-
-
-def _place(at: tuple[float, float], count: int, radius: float, air: bool, placed: list) -> list:
-    """Spawn `count` units around `at` the way SC2 creates units at a point: each on the
-    free spot closest to it (ground units do not overlap ground units already placed, air
-    units not air ones). `placed` holds (x, y, radius, air) of the side so far; extended."""
-    out = []
-    for _ in range(count):
-        cand = np.asarray(at) + _RING
-        ok = np.ones(len(cand), bool)
-        for x, y, r, a in placed:
-            if a == air:
-                ok &= np.hypot(cand[:, 0] - x, cand[:, 1] - y) >= r + radius + 0.02
-        x, y = cand[int(np.argmax(ok))]
-        placed.append((float(x), float(y), radius, air))
-        out.append((float(x), float(y)))
-    return out
-
-
-def _parse_group(g: Any, where: str, facing: float, blob: bool, placed: list) -> UnitGroup:
+def _check_group(g: Any, where: str, drawn: bool) -> tuple[str, int]:
+    """Validate a group's fields, type and count; return (type, count)."""
     if not isinstance(g, dict):
         raise EnvError(
             f"{where}: a unit group must be a mapping with fields {sorted(GROUP_FIELDS)}"
@@ -187,25 +204,115 @@ def _parse_group(g: Any, where: str, facing: float, blob: bool, placed: list) ->
     count = g.get("count")
     if not isinstance(count, int) or isinstance(count, bool) or count < 0:
         raise EnvError(f"{where}.count: must be an int >= 0, got {count!r}")
-    if ("at" in g) == ("positions" in g):
+    if drawn and ("at" in g or "positions" in g):
+        raise EnvError(f"{where}: with start_positions, give neither 'at' nor 'positions'")
+    if not drawn and ("at" in g) == ("positions" in g):
         raise EnvError(f"{where}: give exactly one of 'at' or 'positions'")
-    if "at" in g:
-        at = g["at"]
-        if not (isinstance(at, list | tuple) and len(at) == 2):
-            raise EnvError(f"{where}.at: must be [x, y], got {at!r}")
-        t, xy = types[name], (float(at[0]), float(at[1]))
-        if blob:
-            pos = _place(xy, count, t.radius, "air" in t.attributes, placed)
-        else:
-            pos = _line(xy, count, t.radius, facing)
-    else:
-        pos = g["positions"]
-        ok = isinstance(pos, list) and all(isinstance(p, list | tuple) and len(p) == 2 for p in pos)
-        if not ok or len(pos) != count:
-            raise EnvError(f"{where}.positions: must be {count} [x, y] pairs, got {pos!r}")
+    return name, count
+
+
+def _parse_side(groups: Any, src: str, side: str, blob: bool, drawn: bool, size) -> tuple:
+    """One side's groups; 'blob' places each group's units as SC2 does (scenario.place)."""
+    if not isinstance(groups, list) or not groups:
+        raise EnvError(f"{src}: field {side!r} must be a non-empty list of unit groups")
+    types, parsed, points = unit_types(), [], []
+    facing = 1.0 if side == "allies" else -1.0
+    for i, g in enumerate(groups):
+        where = f"{src}: field '{side}[{i}]'"
+        name, count = _check_group(g, where, drawn)
         t = types[name]
-        placed += [(float(x), float(y), t.radius, "air" in t.attributes) for x, y in pos]
-    return UnitGroup(name, count, tuple((float(x), float(y)) for x, y in pos))
+        if drawn:
+            pos = []
+        elif "at" in g:
+            at = g["at"]
+            if not (isinstance(at, list | tuple) and len(at) == 2):
+                raise EnvError(f"{where}.at: must be [x, y], got {at!r}")
+            xy = (float(at[0]), float(at[1]))
+            pos = [xy] * count if blob else _line(xy, count, t.radius, facing)
+        else:
+            pos = g["positions"]
+            ok = isinstance(pos, list) and all(
+                isinstance(p, list | tuple) and len(p) == 2 for p in pos
+            )
+            if not ok or len(pos) != count:
+                raise EnvError(f"{where}.positions: must be {count} [x, y] pairs, got {pos!r}")
+        parsed.append((name, count, [(float(x), float(y)) for x, y in pos]))
+        points += [(t.radius, "air" in t.attributes, blob and "at" in g)] * (0 if drawn else count)
+    if sum(c for _, c, _ in parsed) == 0:
+        raise EnvError(f"{src}: field {side!r} has no units")
+    if blob and not drawn:
+        flat = np.array([p for _, _, ps in parsed for p in ps], np.float64).reshape(-1, 2)
+        radius, air, spread = (np.array(c) for c in zip(*points, strict=True))
+        flat = place(flat, radius, air, size, fixed=~spread)
+        k, out = 0, []
+        for name, count, _ in parsed:
+            out.append((name, count, [tuple(p) for p in flat[k : k + count].tolist()]))
+            k += count
+        parsed = out
+    return tuple(UnitGroup(n, c, tuple(ps)) for n, c, ps in parsed)
+
+
+def _type_order(raw: dict, sides: dict, pool: list[str], source: str) -> tuple[dict, int]:
+    order = raw.get("type_order", {"allies": pool, "enemies": pool})
+    if not isinstance(order, dict) or set(order) != {"allies", "enemies"}:
+        raise EnvError(f"{source}: field 'type_order' must be {{allies: [...], enemies: [...]}}")
+    for side in ("allies", "enemies"):
+        missing = set(sides[side]) - set(order[side])
+        if missing:
+            raise EnvError(f"{source}: field 'type_order.{side}' lacks {sorted(missing)}")
+    default_bits = len(pool) if len(pool) > 1 else 0
+    bits = raw.get("unit_type_bits", default_bits)
+    need = max(len(order["allies"]), len(order["enemies"])) if bits else 0
+    if not isinstance(bits, int) or bits < need:
+        raise EnvError(f"{source}: field 'unit_type_bits' must be an int >= {need}, got {bits!r}")
+    return order, bits
+
+
+def _point(raw: dict, w: float, h: float, source: str) -> tuple[float, float] | None:
+    point = raw.get("attack_point")
+    if point is not None:
+        ok = isinstance(point, list | tuple) and len(point) == 2
+        if not ok or not (0 <= point[0] < w and 0 <= point[1] < h):
+            raise EnvError(
+                f"{source}: field 'attack_point' must be [x, y] on the map, got {point!r}"
+            )
+        point = (float(point[0]), float(point[1]))
+    return point
+
+
+def _flags(raw: dict, source: str) -> dict:
+    """SMACv2's observation options of a map."""
+    out = {}
+    for key, attr in (("obs_own_pos", "own_pos"), ("unit_ranges", "unit_ranges")):
+        v = raw.get(key, False)
+        if not isinstance(v, bool):
+            raise EnvError(f"{source}: field {key!r} must be true or false, got {v!r}")
+        out[attr] = v
+    mar = raw.get("min_attack_range", 2.0)
+    if not isinstance(mar, int | float) or isinstance(mar, bool) or mar < 0:
+        raise EnvError(f"{source}: field 'min_attack_range' must be a number >= 0, got {mar!r}")
+    out["min_attack_range"] = float(mar)
+    return out
+
+
+def _random_fields(raw: dict, source: str) -> tuple[TeamGen | None, StartPositions | None]:
+    team_gen = None
+    if "team_gen" in raw:
+        for side in ("allies", "enemies"):
+            if side in raw:
+                raise EnvError(f"{source}: field {side!r}: team_gen draws the units; drop it")
+        n = raw.get("n_units")
+        team_gen = parse_team_gen(
+            raw["team_gen"], n, raw.get("n_enemies", n), list(unit_types()), source
+        )
+    else:
+        for key in ("n_units", "n_enemies"):
+            if key in raw:
+                raise EnvError(f"{source}: field {key!r} needs 'team_gen'")
+    starts = raw.get("start_positions")
+    if starts is not None:
+        starts = parse_start_positions(starts, source)
+    return team_gen, starts
 
 
 def parse_map(name: str, raw: Any, source: str) -> MapSpec:
@@ -221,43 +328,22 @@ def parse_map(name: str, raw: Any, source: str) -> MapSpec:
     size = raw.get("map_size", [32, 32])
     if not (isinstance(size, list | tuple) and len(size) == 2 and min(size) > 0):
         raise EnvError(f"{source}: field 'map_size' must be [width, height] > 0, got {size!r}")
-    sides = {}
     formation = raw.get("formation", "line")
     if formation not in ("line", "blob"):
         raise EnvError(f"{source}: field 'formation' must be 'line' or 'blob', got {formation!r}")
-    for side, facing in (("allies", 1.0), ("enemies", -1.0)):
-        placed: list = []
-        groups = raw.get(side)
-        if not isinstance(groups, list) or not groups:
-            raise EnvError(f"{source}: field {side!r} must be a non-empty list of unit groups")
-        sides[side] = tuple(
-            _parse_group(g, f"{source}: field '{side}[{i}]'", facing, formation == "blob", placed)
-            for i, g in enumerate(groups)
-        )
-        if sum(g.count for g in sides[side]) == 0:
-            raise EnvError(f"{source}: field {side!r} has no units")
-    used = sorted({g.type for s in sides.values() for g in s})
-    order = raw.get("type_order", {"allies": used, "enemies": used})
-    if not isinstance(order, dict) or set(order) != {"allies", "enemies"}:
-        raise EnvError(f"{source}: field 'type_order' must be {{allies: [...], enemies: [...]}}")
-    for side in ("allies", "enemies"):
-        missing = {g.type for g in sides[side]} - set(order[side])
-        if missing:
-            raise EnvError(f"{source}: field 'type_order.{side}' lacks {sorted(missing)}")
-    default_bits = len(used) if len(used) > 1 else 0
-    bits = raw.get("unit_type_bits", default_bits)
-    need = max(len(order["allies"]), len(order["enemies"])) if bits else 0
-    if not isinstance(bits, int) or bits < need:
-        raise EnvError(f"{source}: field 'unit_type_bits' must be an int >= {need}, got {bits!r}")
+    team_gen, starts = _random_fields(raw, source)
+    sides: dict[str, tuple] = {"allies": (), "enemies": ()}
+    if team_gen is None:
+        for side in ("allies", "enemies"):
+            sides[side] = _parse_side(raw.get(side), source, side, formation == "blob",
+                                      starts is not None, size)  # fmt: skip
+        present = {s: [g.type for g in sides[s]] for s in sides}
+        pool = sorted({t for ts in present.values() for t in ts})
+    else:
+        pool = list(team_gen.unit_types)
+        present = {"allies": pool, "enemies": pool}
+    order, bits = _type_order(raw, present, pool, source)
     w, h = float(size[0]), float(size[1])
-    point = raw.get("attack_point")
-    if point is not None:
-        ok = isinstance(point, list | tuple) and len(point) == 2
-        if not ok or not (0 <= point[0] < w and 0 <= point[1] < h):
-            raise EnvError(
-                f"{source}: field 'attack_point' must be [x, y] on the map, got {point!r}"
-            )
-        point = (float(point[0]), float(point[1]))
     for side in ("allies", "enemies"):
         for g in sides[side]:
             for x, y in g.positions:
@@ -272,7 +358,10 @@ def parse_map(name: str, raw: Any, source: str) -> MapSpec:
         ally_types=tuple(order["allies"]),
         enemy_types=tuple(order["enemies"]),
         unit_type_bits=bits,
-        attack_point=point,
+        attack_point=_point(raw, w, h, source),
+        team_gen=team_gen,
+        start_positions=starts,
+        **_flags(raw, source),
     )
 
 
@@ -310,65 +399,6 @@ def load_map_file(path: str | Path) -> MapSpec:
     return parse_map(str(name), raw, str(p))
 
 
-@dataclass(frozen=True)
-class SkirmishConfig:
-    """Options of a skirmish env (SMAC's constructor defaults).
-
-    Attributes:
-        move_amount: distance of a move order (SMAC: 2).
-        step_mul: game loops per agent step (SMAC: 8).
-        substeps: physics sub-steps per agent step (accuracy vs speed).
-        sight_range / shoot_range: SMAC's fixed 9 and 6.
-        reward_death_value / reward_win / reward_defeat: SMAC's 10 / 200 / 0.
-        reward_scale / reward_scale_rate: scale so a perfect episode returns 20.
-        reward_only_positive: SMAC's default; the reward is |damage + kill bonus|.
-        state_last_action: append all agents' last actions to the state.
-        start_jitter: uniform shift (cells) of each side's whole formation at reset.
-        unit_jitter: uniform per-unit start noise (cells) within the formation.
-        shield_regen_delay_s / shield_regen_per_s: protoss shields regenerate after no damage.
-        acquire_range: how far (edge to edge) a scripted enemy on attack-move looks for an
-            agent to attack; farther agents are ignored until it reaches the agents' spawn.
-        bane_dodge: a scripted enemy ground unit that comes within a living agent baneling's
-            burst radius plus this margin backs away from it (SC2's AI avoids baneling
-            splash; see README.md, "Enemy AI"); negative: no avoidance.
-    """
-
-    move_amount: float = 2.0
-    step_mul: int = 8
-    substeps: int = 2
-    sight_range: float = 9.0
-    shoot_range: float = 6.0
-    reward_death_value: float = 10.0
-    reward_win: float = 200.0
-    reward_defeat: float = 0.0
-    reward_scale: bool = True
-    reward_scale_rate: float = 20.0
-    reward_only_positive: bool = True
-    state_last_action: bool = True
-    start_jitter: float = 1.0
-    unit_jitter: float = 0.05
-    shield_regen_delay_s: float = 10.0
-    shield_regen_per_s: float = 2.0
-    acquire_range: float = 9.0
-    bane_dodge: float = 0.5
-
-    def validate(self) -> None:
-        if self.step_mul < 1 or self.substeps < 1 or self.step_mul % self.substeps:
-            raise EnvError("step_mul and substeps must be >= 1 with substeps dividing step_mul")
-        if not (0 < self.shoot_range <= self.sight_range):
-            raise EnvError("need 0 < shoot_range <= sight_range")
-        if (
-            self.move_amount <= 0
-            or self.reward_scale_rate <= 0
-            or min(self.start_jitter, self.unit_jitter) < 0
-        ):
-            raise EnvError("move_amount and reward_scale_rate must be > 0, start_jitter >= 0")
-        if self.acquire_range < 0:
-            raise EnvError("acquire_range must be >= 0")
-        if not math.isfinite(self.reward_win) or self.reward_defeat > 0:
-            raise EnvError("reward_win must be finite and reward_defeat <= 0")
-
-
 def ordered_units(spec: MapSpec, side: str) -> tuple[list[str], np.ndarray]:
     """Unit type names and start positions [n, 2] of one side in SMAC's unit order.
 
@@ -381,14 +411,3 @@ def ordered_units(spec: MapSpec, side: str) -> tuple[list[str], np.ndarray]:
     names = [u[3] for u in units]
     pos = np.array([[u[1], u[2]] for u in units], np.float64).reshape(-1, 2)
     return names, pos
-
-
-def make_config(**overrides: Any) -> SkirmishConfig:
-    """SkirmishConfig with keyword overrides; unknown keys raise EnvError listing valid ones."""
-    valid = [f.name for f in fields(SkirmishConfig)]
-    unknown = sorted(set(overrides) - set(valid))
-    if unknown:
-        raise EnvError(f"unknown skirmish options {unknown}; valid options: {valid}")
-    cfg = SkirmishConfig(**overrides)
-    cfg.validate()
-    return cfg

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from actors.envs.skirmish import SkirmishEnv, SkirmishVecEnv, make_skirmish_vec
+from actors.envs.skirmish.config import make_config
 from actors.envs.skirmish.scripts import POLICIES, evaluate
-from actors.envs.skirmish.spec import make_config, parse_map
+from actors.envs.skirmish.spec import parse_map
 
 
 def battle_env(allies, enemies, limit=50, **options) -> SkirmishEnv:

@@ -15,12 +15,13 @@ from actors.envs.skirmish.scripts import focus_fire_policy
 def reference_obs_state_avail(env: SkirmishEnv):
     """SMAC's get_obs_agent / get_state / get_avail_agent_actions, one unit at a time."""
     b, lay, st = env.battle, env.vec.lay, env.vec.st
+    onehots = b.roster(0).onehot
     N, E, bits = st.N, st.E, lay.bits
     x, y, hp, sh, alive = b.x[0], b.y[0], b.hp[0], b.sh[0], b.alive[0]
     sight, shoot = 9.0, 6.0
 
     def onehot(u):
-        return list(lay.onehot[u]) if bits else []
+        return list(onehots[u]) if bits else []
 
     def health_feats(u, shields):
         f = [hp[u] / st.hp_max[u]]

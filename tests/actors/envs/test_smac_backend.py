@@ -84,3 +84,23 @@ def test_adapter_checks_actions_and_flags_timeouts():
     assert [term for _, term, _ in infos] == [False, False, False, True]
     assert [i["episode_limit"] for _, _, i in infos] == [False, False, False, True]
     assert infos[-1][2]["battle_won"] is False
+
+
+def test_adapter_takes_skirmish_starcraft2env_like_oxwhirls(tmp_path):
+    """skirmish's StarCraft2Env answers the adapter as oxwhirl's does (lists, no
+    episode_limit in the info without continuing_episode); the adapter flags the timeout."""
+    from actors.envs.skirmish import StarCraft2Env
+
+    env = SmacEnv("3m", seed=4, env_cls=StarCraft2Env)
+    ref = make_skirmish(4, map_name="3m")
+    np.testing.assert_array_equal(env.reset()[1], ref.reset()[1])
+    path = tmp_path / "far.yaml"
+    path.write_text(
+        "episode_limit: 3\n"
+        "allies: [{type: marine, count: 1, at: [2, 16]}]\n"
+        "enemies: [{type: marine, count: 1, at: [30, 16]}]\n"
+    )
+    env = SmacEnv(str(path), seed=0, env_cls=StarCraft2Env)
+    env.reset()
+    infos = [env.step([1])[2] for _ in range(3)]
+    assert [i["episode_limit"] for i in infos] == [False, False, True]
