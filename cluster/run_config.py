@@ -201,9 +201,13 @@ def default_files(algo: str, env_id: str) -> list[Path]:
     envs/<family>.yaml (the env family's schedule, evaluation and value-family data flow),
     algos/<algo>.yaml (the algorithm's own hyper-parameters, including data flow it fixes,
     e.g. the policy-gradient family's 4 new episodes per step and 32-episode cycling buffer),
-    envs/<family>/<name>.yaml (what one map needs)."""
+    envs/<family>.<algo family>.yaml (what one algorithm family needs on that env family, e.g.
+    the value family's measured settings on SMAC-like maps), envs/<family>/<name>.yaml (what
+    one map needs)."""
     family, _, name = env_id.partition("/")
+    algo_family = get_algo(algo).family
     candidates = [CONFIG_DIR / "envs" / f"{family}.yaml", CONFIG_DIR / "algos" / f"{algo}.yaml"]
+    candidates.append(CONFIG_DIR / "envs" / f"{family}.{algo_family}.yaml")
     candidates.append(CONFIG_DIR / "envs" / family / f"{name}.yaml")
     return [p for p in candidates if p.exists()]
 

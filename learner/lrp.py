@@ -171,3 +171,36 @@ def agent_relevance_all_actions(
             frac = weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
             shares = shares + residual * frac.unsqueeze(-1)
     return shares
+
+
+def lrp_difference(
+    mlp: MLP, x: torch.Tensor, x_ref: torch.Tensor, eps: float = 0.01
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Relevance of each input's deviation from a reference input for the output's deviation:
+    the ε-rule applied to differences (a deep-Taylor root point / DeepLIFT's rescale rule),
+        R_j = (a_j - ā_j) Σ_k w_jk R_k / (Δz_k + ε·sign(Δz_k)),   R_out = f(x) - f(x_ref),
+    with what ε absorbs spread over the inputs in proportion to |x - x_ref| (as
+    "eps_residual"), so Σ_j R_j = f(x) - f(x_ref) exactly and an input equal to its
+    reference gets no relevance.
+
+    Args:
+        mlp: a ReLU MLP with one output unit.
+        x, x_ref: [E, M, D].
+    Returns:
+        (relevance [E, M, D], f(x) - f(x_ref) [E, M]).
+    """
+    with torch.no_grad():
+        acts, refs = mlp.activations(x), mlp.activations(x_ref)
+        delta_out = (acts[-1] - refs[-1]).squeeze(-1)
+        relevance = delta_out.unsqueeze(-1)
+        for k in range(len(mlp.layers) - 1, -1, -1):
+            layer = mlp.layers[k]
+            da = acts[k] - refs[k]
+            dz = torch.bmm(da, layer.weight)
+            s = relevance / _stabilise(dz, eps)
+            relevance = da * torch.bmm(s, layer.weight.transpose(1, 2))
+        dx = (x - x_ref).abs()
+        total = dx.sum(-1, keepdim=True)
+        share = torch.where(total > 0, dx / total.clamp_min(1e-12), torch.zeros_like(dx))
+        relevance = relevance + (delta_out - relevance.sum(-1)).unsqueeze(-1) * share
+    return relevance, delta_out

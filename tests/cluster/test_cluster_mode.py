@@ -282,3 +282,32 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     assert "no credit Ray cluster recorded" in status.stdout
     after, _ = bystander.communicate("\n", timeout=120)
     assert after.strip() == "after 1", "cluster down stopped another run's Ray instance"
+
+
+@pytest.mark.parametrize("actors, num_envs", [(1, 1), (2, 4)])
+def test_updates_and_target_refreshes_per_episode_do_not_depend_on_actors(
+    tmp_path, env, actors, num_envs
+):
+    """replay.updates_per_episode and target_update_episodes mean the same with any number of
+    actors and envs per actor: the buffer's rate limiter holds the learner to 2 updates per
+    inserted episode, within the in-flight slack (actors x rate_slack rounds), and the target
+    network is copied once per 50 episodes."""
+    out = tmp_path / "run"
+    args = ["--algo", "vdn", "--env", "matrix/two_step", "--mode", "cluster"]
+    args += ["--actors", str(actors), "--t-max", "800", "--out", str(out)]
+    for kv in (
+        f"run.num_envs={num_envs}",
+        "replay.updates_per_episode=2",
+        "replay.batch_size=4",
+        "algo.target_update_episodes=50",
+        "run.test_interval=400",
+    ):
+        args += ["--set", kv]
+    done = subprocess.run(_cli(args), env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    episodes, updates = summary["episodes"], summary["updates"]
+    slack = actors * 2 * num_envs + 4  # rounds in flight, and the first batch's warm-up
+    assert 2 * (episodes - slack) <= updates <= 2 * episodes, (episodes, updates)
+    learner = torch.load(out / "checkpoint" / "learner.pt", weights_only=False)
+    assert episodes // 50 - 1 <= learner["target_epoch"] <= episodes // 50, (episodes, learner)

@@ -3,7 +3,13 @@
 import pytest
 import torch
 
-from learner.lrp import LRP_RULES, agent_relevance, agent_relevance_all_actions, lrp_epsilon
+from learner.lrp import (
+    LRP_RULES,
+    agent_relevance,
+    agent_relevance_all_actions,
+    lrp_difference,
+    lrp_epsilon,
+)
 from learner.networks import MLP
 
 
@@ -119,3 +125,28 @@ def test_all_actions_shares_match_one_lrp_call_per_counterfactual(rule):
             alt[..., i] = u
             rel, _ = lrp_epsilon(mlp, inputs(alt), 0.01, rule)
             torch.testing.assert_close(got[..., i, u], agent_relevance(rel, n)[..., i])
+
+
+def test_lrp_difference_conserves_and_ignores_inputs_at_their_reference():
+    torch.manual_seed(1)
+    mlp = MLP(2, 6, (16, 8), 1)
+    x = torch.randn(2, 7, 6)
+    ref = x.clone()
+    ref[..., 4:] = 0.0  # only the last two features deviate from the reference
+    rel, delta = lrp_difference(mlp, x, ref)
+    torch.testing.assert_close(delta, (mlp(x) - mlp(ref)).squeeze(-1))
+    torch.testing.assert_close(rel.sum(-1), delta)  # exact conservation of the difference
+    assert torch.all(rel[..., :4] == 0.0)
+
+
+def test_lrp_difference_of_a_linear_map_is_each_inputs_own_term():
+    """Without active nonlinearity the split is exact: R_j = w_j (x_j - ref_j)."""
+    mlp = MLP(1, 3, (4,), 1)
+    with torch.no_grad():
+        mlp.layers[0].weight.copy_(torch.eye(3, 4).unsqueeze(0))
+        mlp.layers[0].bias.fill_(10.0)  # every hidden unit stays active
+        mlp.layers[1].weight.copy_(torch.tensor([[[2.0], [-1.0], [0.5], [0.0]]]))
+    x = torch.tensor([[[1.0, 2.0, 3.0]]])
+    ref = torch.tensor([[[0.0, 0.0, 1.0]]])
+    rel, _ = lrp_difference(mlp, x, ref, eps=1e-9)
+    torch.testing.assert_close(rel, torch.tensor([[[2.0, -2.0, 1.0]]]), atol=1e-5, rtol=0)
