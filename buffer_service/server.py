@@ -512,7 +512,7 @@ async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
         info = {"host": cfg.host, "port": server.port, "metrics_port": server.metrics_port}
         info["pid"] = os.getpid()
         tmp = f"{port_file}.tmp"
-        with open(tmp, "w") as f:
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), "w") as f:
             json.dump(info, f)
         os.replace(tmp, port_file)
     try:
