@@ -69,18 +69,20 @@ def test_a_connection_without_hello_is_closed_after_hello_timeout(serve):
 
 def test_a_started_frame_must_arrive_within_read_timeout(serve):
     srv, c = serve(read_timeout_s=0.3)
-    raw = Raw(srv.port, hello())
-    raw.sock.settimeout(20)
+    body = codec.pack({"op": "stats", "v": codec.PROTOCOL_VERSION})
+    raw, header_only = Raw(srv.port, hello()), Raw(srv.port, hello())
     try:
-        body = codec.pack({"op": "stats", "v": codec.PROTOCOL_VERSION})
-        raw.sock.sendall(codec.frame(body) + body[:2])  # the header and part of the body
-        assert _closed_by_server(raw.sock)
+        for sock, part in [(header_only.sock, 2), (raw.sock, 6)]:
+            sock.settimeout(20)
+            sock.sendall((codec.frame(body) + body)[:part])  # part of the header / the body
+        assert _closed_by_server(header_only.sock) and _closed_by_server(raw.sock)
         idle = Raw(srv.port, hello())  # an authenticated connection may idle between frames
         assert idle.ask({"op": "stats", "v": codec.PROTOCOL_VERSION})["ok"] is True
         idle.close()
         assert c.stats()["connections"] == 1
     finally:
         raw.close()
+        header_only.close()
 
 
 def test_frames_before_hello_are_limited_to_max_hello_bytes(serve):
