@@ -115,13 +115,13 @@ def seqs_left(c: BufferClient) -> list[int]:
     return sorted(int(s) for s in c.sample("cycling", n).episode_seq)
 
 
-def _serve_cli(snap: Path, port: int, port_file: Path) -> subprocess.Popen:
+def _serve_cli(snap: Path, port: int, port_file: Path, capacity: int = 1000) -> subprocess.Popen:
     if port_file.exists():
         port_file.unlink()
     cmd = [
         sys.executable, "-m", "cluster.cli", "buffer", "serve", "--port", str(port),
         "--port-file", str(port_file), "--snapshot-dir", str(snap), "--snapshot-every", "7",
-        "--table", "name=all,kind=cycling,capacity=1000,max_times_sampled=1",
+        "--table", f"name=all,kind=cycling,capacity={capacity},max_times_sampled=1",
     ]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 30
