@@ -310,7 +310,7 @@ class BufferServer:
         self._update_sizes()
         await self._notify()
         self._maybe_snapshot()
-        if fresh and self.commits is not None:
+        if self.commits is not None:
             # Acknowledged only once fsynced; a duplicate too, as its first insert may still be
             # waiting for its fsync.
             await self.commits.durable(self.storage.written, alone=len(self._conns) == 1)
