@@ -55,6 +55,7 @@ log = logging.getLogger(__name__)
 NAME = re.compile(r"^(snapshot|log)-(\d{8})\.bin$")
 TEMP = re.compile(r"^(snapshot|log)-(\d{8})\.bin\.tmp$")
 FILE_MODE = 0o644
+SYNC_EVERY = 4 << 20  # snapshot bytes written between fdatasyncs
 
 
 class StorageError(RuntimeError):
@@ -432,8 +433,12 @@ class SnapshotJob:
         try:
             records.write(fd, FILE, st._file_meta("snapshot", self.gen, self.copy.schema))
             records.write(fd, HEADER, self.copy.header())
+            unsynced = 0
             for ep in self.copy.episodes:
-                records.write(fd, EPISODE, None, codec.pack(codec.episode_to_wire(ep)))
+                unsynced += records.write(fd, EPISODE, None, codec.pack(codec.episode_to_wire(ep)))
+                if unsynced >= SYNC_EVERY:  # little dirty data at a time: the log's fsyncs
+                    os.fdatasync(fd)  # and writes do not queue behind the whole snapshot
+                    unsynced = 0
             records.write(fd, END, {"episodes": len(self.copy.episodes)})
             os.fsync(fd)
         except BaseException:
