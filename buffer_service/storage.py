@@ -217,7 +217,8 @@ class Storage:
         for s in sorted(r.snaps, reverse=True):
             sc = records.scan_file(self.path("snapshot", s))
             why = snapshot_problem(sc)
-            if why is None and all(g in r.logs for g in range(s + 1, r.top + 1)):
+            first = s if s < r.top else s + 1  # (format 1 made a snapshot's log after it)
+            if why is None and all(g in r.logs for g in range(first, r.top + 1)):
                 r.base = s
                 return sc
             r.warnings.append(f"snapshot-{s:08d}.bin {why or 'lacks a later log'}; trying older")
