@@ -175,7 +175,7 @@ def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     cannot expand either way: container sizes are bounded by the bytes left.
     """
     try:
-        if memoryview(body).nbytes >= ZERO_COPY_MIN:
+        if decodes_as_views(memoryview(body).nbytes):
             msg = wire.decode(body)
         else:  # small frames: the C library is faster and the copies are cheap
             msg = msgpack.unpackb(body, raw=False, strict_map_key=True)
@@ -184,6 +184,11 @@ def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(msg, dict):
         raise CodecError(f"frame must be a msgpack map, got {type(msg).__name__}")
     return msg
+
+
+def decodes_as_views(nbytes: int) -> bool:
+    """Does `unpack` return a frame of `nbytes` with bins that view it (not copies)?"""
+    return nbytes >= ZERO_COPY_MIN
 
 
 def own(ep: Episode) -> Episode:

@@ -83,10 +83,11 @@ def insert_tables(msg: dict[str, Any], have: list[str]) -> list[str]:
     return tables
 
 
-def insert_episodes(msg: dict[str, Any], schema_: EpisodeSchema) -> list[Episode]:
-    """Decode and validate every episode of an insert (all or nothing); each is copied out
-    of the received frame, so that a stored episode holds only its own bytes (a zero-copy
-    view would keep the whole frame alive for as long as the episode is stored)."""
+def insert_episodes(msg: dict[str, Any], schema_: EpisodeSchema, frame_bytes: int) -> list[Episode]:
+    """Decode and validate every episode of an insert (all or nothing). When the frame of
+    `frame_bytes` was decoded without copying, each episode is copied out of it, so that a
+    stored episode holds only its own bytes (a view would keep the whole frame alive for as
+    long as the episode is stored); smaller frames' arrays already own a buffer each."""
     wires = msg.get("episodes")
     if not isinstance(wires, list):
         raise RequestError("bad_frame", "episodes must be a list")
@@ -97,7 +98,7 @@ def insert_episodes(msg: dict[str, Any], schema_: EpisodeSchema) -> list[Episode
             ep.validate(schema_)
         except (CodecError, EpisodeError) as e:
             raise RequestError("invalid_episode", f"episode {i}: {e}") from None
-        eps.append(codec.own(ep))
+        eps.append(codec.own(ep) if codec.decodes_as_views(frame_bytes) else ep)
     return eps
 
 

@@ -289,7 +289,7 @@ class BufferServer:
         if self.state.schema is None:
             raise RequestError("bad_request", "no episode schema yet: send one in hello")
         tables = requests.insert_tables(msg, list(self.state.tables))
-        eps = requests.insert_episodes(msg, self.state.schema)
+        eps = requests.insert_episodes(msg, self.state.schema, len(body))
         timeout = requests.timeout(msg, self.cfg.insert_timeout_s)
         if any(not self.state.is_duplicate(ep.key) for ep in eps):
             await self._wait(
