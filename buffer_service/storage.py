@@ -222,7 +222,8 @@ class Storage:
                 r.base = s
                 return sc
             r.warnings.append(f"snapshot-{s:08d}.bin {why or 'lacks a later log'}; trying older")
-            r.bad_snaps.append(s)
+            if why is not None:
+                r.bad_snaps.append(s)
         if all(g in r.logs for g in range(0, r.top + 1)):
             r.base = 0
         return None
