@@ -39,8 +39,8 @@ ALLOWED_DTYPES: frozenset[str] = frozenset({"<f4", "<f8", "|u1", "|b1", "<i4", "
 
 ERROR_CODES: frozenset[str] = frozenset(
     {
-        "bad_frame",  # not msgpack, not a map, missing/ill-typed fields, bad arrays
-        "frame_too_large",  # declared length above the server's max_frame_bytes
+        "bad_frame",  # not msgpack, not a map, missing/ill-typed/unknown fields, bad arrays
+        "frame_too_large",  # declared length above max_frame_bytes (max_hello_bytes before hello)
         "bad_version",  # `v` differs from PROTOCOL_VERSION
         "auth",  # wrong or missing token
         "hello_required",  # an op other than hello before a successful hello
@@ -49,7 +49,7 @@ ERROR_CODES: frozenset[str] = frozenset(
         "invalid_episode",  # an episode breaks the schema (shape, dtype, NaN/inf, ...)
         "no_table",  # a table name the server does not have
         "rate_limited",  # the rate limiter did not allow the op within its timeout
-        "bad_request",  # well-formed frame with out-of-range values (batch_size, ...)
+        "bad_request",  # out-of-range values: batch_size above the cap, empty or repeated tables
         "internal",
     }
 )
@@ -175,7 +175,7 @@ def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     cannot expand either way: container sizes are bounded by the bytes left.
     """
     try:
-        if memoryview(body).nbytes >= ZERO_COPY_MIN:
+        if decodes_as_views(memoryview(body).nbytes):
             msg = wire.decode(body)
         else:  # small frames: the C library is faster and the copies are cheap
             msg = msgpack.unpackb(body, raw=False, strict_map_key=True)
@@ -184,6 +184,11 @@ def unpack(body: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(msg, dict):
         raise CodecError(f"frame must be a msgpack map, got {type(msg).__name__}")
     return msg
+
+
+def decodes_as_views(nbytes: int) -> bool:
+    """Does `unpack` return a frame of `nbytes` with bins that view it (not copies)?"""
+    return nbytes >= ZERO_COPY_MIN
 
 
 def own(ep: Episode) -> Episode:

@@ -118,8 +118,20 @@ class BufferConfig:
         sample_timeout_s: longest a sample waits for the rate limiter (requests may ask
             for less).
         insert_timeout_s: longest an insert waits for the rate limiter.
-        read_timeout_s: a started frame must arrive completely within this time.
-        max_connections: concurrent connections; further ones are closed at once.
+        read_timeout_s: a started frame (request or reply) must be transferred completely
+            within this time; an authenticated connection may idle between frames.
+        hello_timeout_s: a new connection must complete its hello within this time.
+        max_connections: concurrent connections; when full, a new one takes the place of
+            the oldest connection that has not completed its hello, else it is closed at once.
+        max_unauthenticated: connections that have not completed their hello; a new one
+            beyond this closes the oldest of them (so stalled sockets cannot lock clients out).
+        max_hello_bytes: largest frame accepted before a hello succeeded.
+        max_inflight_bytes: request bodies larger than max_hello_bytes that are read and
+            handled at once, in bytes over all connections (further ones wait); with
+            max_frame_bytes and max_sample_episodes it bounds the server's memory.
+        max_sample_episodes: largest batch_size of one sample request.
+        repair: on start, keep what a damaged snapshot_dir still holds and discard the rest
+            (saying what) instead of refusing to start.
         dedup_window: per actor, how many episode_seq values are remembered exactly; seqs
             further behind the actor's window are treated as already inserted.
         metrics_port: Prometheus HTTP port on 127.0.0.1 (None = no exporter, 0 = any).
@@ -137,7 +149,13 @@ class BufferConfig:
     sample_timeout_s: float = 30.0
     insert_timeout_s: float = 30.0
     read_timeout_s: float = 30.0
+    hello_timeout_s: float = 10.0
     max_connections: int = 256
+    max_unauthenticated: int = 32
+    max_hello_bytes: int = 64 * 1024
+    max_inflight_bytes: int = 256 * 2**20
+    max_sample_episodes: int = 1024
+    repair: bool = False
     dedup_window: int = 1 << 16
     metrics_port: int | None = None
 
@@ -155,9 +173,17 @@ class BufferConfig:
             t.validate()
         if self.max_frame_bytes < 1024:
             raise ValueError("max_frame_bytes must be >= 1024")
-        for name in ("sample_timeout_s", "insert_timeout_s", "read_timeout_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0")
+        for name in ("sample_timeout_s", "insert_timeout_s", "read_timeout_s", "hello_timeout_s"):
+            if not 0 < getattr(self, name) < math.inf:
+                raise ValueError(f"{name} must be a finite number > 0")
+        if not 1024 <= self.max_hello_bytes <= self.max_frame_bytes:
+            raise ValueError("max_hello_bytes must be in 1024..max_frame_bytes")
+        if self.max_inflight_bytes < self.max_frame_bytes:
+            raise ValueError("max_inflight_bytes must be >= max_frame_bytes")
+        if self.max_unauthenticated < 1:
+            raise ValueError("max_unauthenticated must be >= 1")
+        if self.max_sample_episodes < 1:
+            raise ValueError("max_sample_episodes must be >= 1")
         if self.snapshot_every_inserts < 0:
             raise ValueError("snapshot_every_inserts must be >= 0")
         if self.max_connections < 1:

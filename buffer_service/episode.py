@@ -22,6 +22,7 @@ EPISODE_DTYPES: dict[str, np.dtype] = {
 }
 EPISODE_ARRAYS: tuple[str, ...] = tuple(EPISODE_DTYPES)
 EPISODE_SCALARS: tuple[str, ...] = ("actor_id", "episode_seq", "policy_version")
+MAX_SCHEMA_SIZE = 2**31 - 1  # largest n_agents, obs_dim, ... a schema may declare
 
 
 class EpisodeError(ValueError):
@@ -64,12 +65,19 @@ class EpisodeSchema:
 
     @classmethod
     def from_dict(cls, d: dict) -> EpisodeSchema:
-        names = {f.name for f in fields(cls)}
-        if set(d) != names:
-            raise EpisodeError(
-                f"episode schema needs exactly the keys {sorted(names)}, got {sorted(d)}"
-            )
-        return cls(**{k: int(d[k]) for k in names})
+        """Schema from its dict; every size must be an int in 1..MAX_SCHEMA_SIZE (EpisodeError
+        names the first field that is not: a float, inf, NaN, bool or string is refused)."""
+        names = [f.name for f in fields(cls)]
+        if not isinstance(d, dict) or set(d) != set(names):
+            got = sorted(map(str, d)) if isinstance(d, dict) else type(d).__name__
+            raise EpisodeError(f"episode schema needs exactly the keys {sorted(names)}, got {got}")
+        for k in names:
+            v = d[k]
+            if type(v) is not int or not 1 <= v <= MAX_SCHEMA_SIZE:
+                raise EpisodeError(
+                    f"schema field {k!r} is {v!r}: must be an int in 1..{MAX_SCHEMA_SIZE}"
+                )
+        return cls(**{k: d[k] for k in names})
 
 
 @dataclass(frozen=True)
@@ -127,6 +135,17 @@ class Episode:
             raise EpisodeError(f"field 'actions' has values outside 0..{schema.n_actions - 1}")
         if np.any(self.terminated[:-1]):
             raise EpisodeError("field 'terminated' is set before the last transition")
+        if not np.all(self.filled):
+            raise EpisodeError(
+                "field 'filled' must be all true in a stored episode (padding exists only "
+                "inside an EpisodeBatch)"
+            )
+        stuck = ~self.avail_actions.any(axis=-1)  # [T+1, N]: no action available
+        if np.any(stuck):
+            t_, agent = (int(i) for i in np.argwhere(stuck)[0])
+            raise EpisodeError(
+                f"field 'avail_actions': agent {agent} has no available action at step {t_}"
+            )
 
 
 @dataclass(frozen=True)

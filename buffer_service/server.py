@@ -5,8 +5,8 @@ written and its episodes applied on the loop; its reply waits for an fsync that 
 thread and covers every record written before it started (group commit), so "acknowledged
 means durable" holds while concurrent inserts share fsyncs (see `buffer_service.storage` for
 the guarantee). An episode may be sampled before its insert is acknowledged; if the service
-dies in between, the unacknowledged insert is retried by its client. Snapshot writes block
-the loop.
+dies in between, the unacknowledged insert is retried by its client. A snapshot copies the
+state's references on the loop and is written in a thread, so requests go on meanwhile.
 
 Ops (request fields -> reply fields; every reply has ``ok``):
 
@@ -18,8 +18,11 @@ Ops (request fields -> reply fields; every reply has ``ok``):
   limiter, then ``rate_limited``.
 * ``stats``  {} -> {stats}.   * ``snapshot`` {} -> {path}.
 
+Fields an op does not define are refused (``bad_frame``), and so is anything that cannot be
+served correctly (see `buffer_service.requests`), before anything is logged or stored.
 Errors reply ``{ok: false, error, message}``; ``frame_too_large``, ``bad_version``,
-``auth`` and ``hello_required`` also close the connection. Other clients never notice.
+``auth`` and ``hello_required`` also close the connection. Other clients never notice:
+deadlines and limits on reading frames are `buffer_service.connections`'.
 """
 
 from __future__ import annotations
@@ -34,11 +37,13 @@ import threading
 import time
 from typing import Any
 
-from buffer_service import codec
+from buffer_service import codec, requests
 from buffer_service.codec import PROTOCOL_VERSION, CodecError
 from buffer_service.config import BufferConfig
-from buffer_service.episode import Episode, EpisodeError, EpisodeSchema
+from buffer_service.connections import ByteBudget, Conn, FrameTooLargeError
+from buffer_service.episode import EpisodeSchema
 from buffer_service.metrics import BufferMetrics
+from buffer_service.requests import RequestError
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
 
@@ -89,22 +94,6 @@ class GroupCommit:
             self._task = None
 
 
-class RequestError(Exception):
-    """A refused request: becomes an error reply with `code`."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-def _timeout(msg: dict[str, Any], limit: float) -> float:
-    """A request's rate-limiter wait: its ``timeout_s``, capped by the server's `limit`."""
-    timeout = msg.get("timeout_s", limit)
-    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout >= 0:
-        raise RequestError("bad_request", f"timeout_s {timeout!r} must be a number >= 0")
-    return min(float(timeout), limit)
-
-
 class BufferServer:
     """The service on the current event loop: ``await start()``, then ``await close()``.
 
@@ -117,7 +106,9 @@ class BufferServer:
         cfg.validate()
         self.cfg = cfg
         self.state = BufferState(cfg)
-        self.storage = Storage(cfg.snapshot_dir, cfg.fsync) if cfg.snapshot_dir else None
+        self.storage = None
+        if cfg.snapshot_dir:
+            self.storage = Storage(cfg.snapshot_dir, cfg.fsync, cfg.repair, cfg.tables)
         self.commits = GroupCommit(self.storage) if self.storage and cfg.fsync else None
         self.metrics = BufferMetrics(list(self.state.tables))
         self.rng = random.Random(int.from_bytes(os.urandom(8), "little"))
@@ -126,6 +117,9 @@ class BufferServer:
         self._server: asyncio.base_events.Server | None = None
         self._changed: asyncio.Condition | None = None
         self._conns: set[asyncio.Task] = set()
+        self._unauth: dict[asyncio.Task, None] = {}  # no hello yet, oldest first
+        self._budget: ByteBudget | None = None
+        self._snapshotting: asyncio.Future | None = None
         # Requests the rate limiter held back, per op: [count, seconds waited, timeouts].
         self.limiter_waits: dict[str, list[float]] = {"insert": [0, 0.0, 0], "sample": [0, 0.0, 0]}
 
@@ -135,8 +129,9 @@ class BufferServer:
             self.storage.restore(self.state)
         self._update_sizes()
         self._changed = asyncio.Condition()
+        self._budget = ByteBudget(self.cfg.max_inflight_bytes)
         self._server = await asyncio.start_server(
-            self._on_connect, self.cfg.host, self.cfg.port, limit=2**16
+            self._on_connect, self.cfg.host, self.cfg.port, limit=2**16, backlog=1024
         )
         self.port = int(self._server.sockets[0].getsockname()[1])
         if self.cfg.metrics_port is not None:
@@ -157,7 +152,9 @@ class BufferServer:
             if self.commits is not None:
                 await self.commits.idle()
             if snapshot:
-                self._snapshot()
+                await self._snapshot()
+            elif self._snapshotting is not None:
+                await asyncio.gather(self._snapshotting, return_exceptions=True)
             self.storage.close()
         self.metrics.stop_exporter()
 
@@ -165,13 +162,14 @@ class BufferServer:
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
         task = asyncio.current_task()
-        if len(self._conns) >= self.cfg.max_connections:
+        if not self._admit():
             self.metrics.rejected.labels(reason="max_connections").inc()
             writer.close()
             return
         self._conns.add(task)
+        self._unauth[task] = None
         try:
-            await self._serve_connection(reader, writer)
+            await self._serve_connection(reader, writer, Conn(task, self.cfg))
         except (TimeoutError, ConnectionError, asyncio.IncompleteReadError):
             pass
         except asyncio.CancelledError:
@@ -180,22 +178,34 @@ class BufferServer:
             log.exception("buffer connection handler failed")
         finally:
             self._conns.discard(task)
+            self._unauth.pop(task, None)
             writer.close()
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
 
-    async def _serve_connection(self, reader, writer) -> None:
-        conn: dict[str, Any] = {"hello": False}
+    def _admit(self) -> bool:
+        """Room for one more connection? When full, the oldest connection that has not
+        completed its hello is closed to make room; without one the new one is refused."""
+        cfg = self.cfg
+        if len(self._conns) < cfg.max_connections and len(self._unauth) < cfg.max_unauthenticated:
+            return True
+        if not self._unauth:
+            return False
+        oldest = next(iter(self._unauth))
+        del self._unauth[oldest]
+        oldest.cancel()
+        self.metrics.rejected.labels(reason="unauthenticated_evicted").inc()
+        return True
+
+    async def _serve_connection(self, reader, writer, conn: Conn) -> None:
+        assert self._budget is not None
         while True:
-            head = await reader.readexactly(codec.FRAME_HEADER.size)
-            (length,) = codec.FRAME_HEADER.unpack(head)
-            if length > self.cfg.max_frame_bytes:
-                msg = f"frame of {length} bytes exceeds max_frame_bytes={self.cfg.max_frame_bytes}"
-                await self._reply(writer, self._error("frame_too_large", msg))
-                return
-            body = await asyncio.wait_for(reader.readexactly(length), self.cfg.read_timeout_s)
             try:
-                reply = await self._dispatch(body, conn)
+                async with conn.frame(reader, self._budget) as body:
+                    reply = await self._dispatch(body, conn)
+            except FrameTooLargeError as e:
+                await self._reply(writer, self._error("frame_too_large", str(e)))
+                return
             except RequestError as e:
                 await self._reply(writer, self._error(e.code, str(e)))
                 if e.code in CLOSING_ERRORS:
@@ -212,9 +222,10 @@ class BufferServer:
         parts = codec.pack_parts(reply)
         size = sum(memoryview(p).nbytes for p in parts)
         writer.writelines([codec.FRAME_HEADER.pack(size), *parts])
-        await writer.drain()
+        async with asyncio.timeout(self.cfg.read_timeout_s):  # a client that does not read
+            await writer.drain()
 
-    async def _dispatch(self, body: bytes, conn: dict[str, Any]) -> dict[str, Any]:
+    async def _dispatch(self, body: bytes | bytearray, conn: Conn) -> dict[str, Any]:
         try:
             msg = codec.unpack(body)
         except CodecError as e:
@@ -225,9 +236,10 @@ class BufferServer:
                 f"protocol version {msg.get('v')!r}, server speaks {PROTOCOL_VERSION}",
             )
         op = msg.get("op")
+        requests.check_fields(op, msg)
         if op == "hello":
             return self._op_hello(msg, conn)
-        if not conn["hello"]:
+        if not conn.hello:
             raise RequestError("hello_required", f"op {op!r} before a successful hello")
         if op == "insert":
             return await self._op_insert(msg, body)
@@ -235,11 +247,9 @@ class BufferServer:
             return await self._op_sample(msg)
         if op == "stats":
             return self._ok(stats=self.stats())
-        if op == "snapshot":
-            if self.storage is None:
-                raise RequestError("bad_request", "server has no snapshot_dir")
-            return self._ok(path=self._snapshot())
-        raise RequestError("unknown_op", f"unknown op {op!r}")
+        if self.storage is None:  # op == "snapshot"
+            raise RequestError("bad_request", "server has no snapshot_dir")
+        return self._ok(path=await self._snapshot())
 
     @staticmethod
     def _ok(**fields: Any) -> dict[str, Any]:
@@ -247,22 +257,16 @@ class BufferServer:
 
     # ---------------------------------------------------------------- ops
 
-    def _op_hello(self, msg: dict[str, Any], conn: dict[str, Any]) -> dict[str, Any]:
+    def _op_hello(self, msg: dict[str, Any], conn: Conn) -> dict[str, Any]:
         token = msg.get("token")
         if self.cfg.token is not None and not (
             isinstance(token, str) and hmac.compare_digest(token.encode(), self.cfg.token.encode())
         ):
             raise RequestError("auth", "wrong or missing token")
-        raw = msg.get("schema")
-        if raw is not None:
-            try:
-                schema = EpisodeSchema.from_dict(raw) if isinstance(raw, dict) else None
-            except (EpisodeError, TypeError, ValueError) as e:
-                raise RequestError("bad_frame", f"schema: {e}") from None
-            if schema is None:
-                raise RequestError("bad_frame", "schema must be a map")
-            self._adopt_schema(schema)
-        conn["hello"] = True
+        if msg.get("schema") is not None:
+            self._adopt_schema(requests.schema(msg["schema"]))
+        conn.hello = True
+        self._unauth.pop(conn.task, None)
         schema_d = self.state.schema.to_dict() if self.state.schema else None
         return self._ok(
             schema=schema_d,
@@ -272,8 +276,6 @@ class BufferServer:
 
     def _adopt_schema(self, schema: EpisodeSchema) -> None:
         if self.state.schema is None:
-            if min(schema.to_dict().values()) < 1:
-                raise RequestError("bad_frame", f"schema sizes must be >= 1: {schema}")
             self.state.schema = schema
             if self.storage is not None:
                 self.storage.log_schema(schema)
@@ -283,34 +285,12 @@ class BufferServer:
                 "schema_mismatch", f"server holds {self.state.schema}, client sent {schema}"
             )
 
-    def _decode_insert(self, msg: dict[str, Any]) -> tuple[list[Episode], list[str]]:
-        schema = self.state.schema
-        if schema is None:
+    async def _op_insert(self, msg: dict[str, Any], body: bytes | bytearray) -> dict[str, Any]:
+        if self.state.schema is None:
             raise RequestError("bad_request", "no episode schema yet: send one in hello")
-        tables = msg.get("tables")
-        if tables is None:
-            tables = list(self.state.tables)
-        if not isinstance(tables, list) or not all(isinstance(t, str) for t in tables):
-            raise RequestError("bad_frame", "tables must be a list of names")
-        missing = [t for t in tables if t not in self.state.tables]
-        if missing:
-            raise RequestError("no_table", f"no tables {missing}; have {list(self.state.tables)}")
-        wires = msg.get("episodes")
-        if not isinstance(wires, list):
-            raise RequestError("bad_frame", "episodes must be a list")
-        eps = []
-        for i, wire in enumerate(wires):
-            try:
-                ep = codec.episode_from_wire(wire)
-                ep.validate(schema)
-            except (CodecError, EpisodeError) as e:
-                raise RequestError("invalid_episode", f"episode {i}: {e}") from None
-            eps.append(ep)
-        return eps, tables
-
-    async def _op_insert(self, msg: dict[str, Any], body: bytes) -> dict[str, Any]:
-        eps, tables = self._decode_insert(msg)
-        timeout = _timeout(msg, self.cfg.insert_timeout_s)
+        tables = requests.insert_tables(msg, list(self.state.tables))
+        eps = requests.insert_episodes(msg, self.state.schema, len(body))
+        timeout = requests.timeout(msg, self.cfg.insert_timeout_s)
         if any(not self.state.is_duplicate(ep.key) for ep in eps):
             await self._wait(
                 lambda: all(self.state.tables[t].limiter.can_insert(1) for t in tables),
@@ -337,14 +317,9 @@ class BufferServer:
         return self._ok(inserted=stored, duplicates=dups)
 
     async def _op_sample(self, msg: dict[str, Any]) -> dict[str, Any]:
-        name, n = msg.get("table"), msg.get("batch_size")
-        if not isinstance(name, str) or name not in self.state.tables:
-            raise RequestError("no_table", f"no table {name!r}; have {list(self.state.tables)}")
+        name, n = requests.sample_args(msg, self.state.tables, self.cfg.max_sample_episodes)
         table = self.state.tables[name]
-        limit = table.cfg.capacity if table.cfg.kind == "cycling" else 1 << 20
-        if type(n) is not int or not 1 <= n <= limit:
-            raise RequestError("bad_request", f"batch_size {n!r} outside 1..{limit} for {name}")
-        timeout = _timeout(msg, self.cfg.sample_timeout_s)
+        timeout = requests.timeout(msg, self.cfg.sample_timeout_s)
         await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}", "sample")
         keys = self.state.choose(name, n, self.rng)
         if self.storage is not None:
@@ -380,16 +355,42 @@ class BufferServer:
             self._changed.notify_all()
 
     def _maybe_snapshot(self) -> None:
-        every = self.cfg.snapshot_every_inserts
-        if self.storage is not None and every and self.storage.records_since_snapshot >= every:
-            self._snapshot()
+        """Start a snapshot in the background when enough inserts were logged since the last."""
+        every, st = self.cfg.snapshot_every_inserts, self.storage
+        due = st is not None and every and st.records_since_snapshot >= every
+        if due and self._snapshotting is None:
+            self._start_snapshot()
 
-    def _snapshot(self) -> str:
-        """Snapshot now; everything written so far is then durable in the snapshot."""
-        path = self.storage.snapshot(self.state)
-        if self.commits is not None:
-            self.commits.synced = self.storage.written
-        return path
+    def _start_snapshot(self) -> asyncio.Future:
+        """Switch the log and copy the state's references here, on the loop (cheap); write
+        the file in a thread. Requests go on meanwhile: the inserts they log go to the new
+        log, so nothing waits for the snapshot to finish."""
+        assert self.storage is not None and self._snapshotting is None
+        job = self.storage.begin_snapshot(self.state)
+        fut = asyncio.ensure_future(asyncio.to_thread(job.write))
+        self._snapshotting = fut
+        fut.add_done_callback(self._snapshot_done)
+        return fut
+
+    def _snapshot_done(self, fut: asyncio.Future) -> None:
+        if self._snapshotting is fut:
+            self._snapshotting = None
+        if not fut.cancelled() and fut.exception() is not None:
+            log.error("snapshot failed (the logs still hold everything): %s", fut.exception())
+        elif self._server is not None and self._server.is_serving():
+            self._maybe_snapshot()  # became due while this one was written
+
+    async def _snapshot(self) -> str:
+        """Snapshot now, after the one in progress if any; returns its path."""
+        while self._snapshotting is not None:
+            running = self._snapshotting
+            await asyncio.gather(running, return_exceptions=True)
+            if self._snapshotting is running:
+                self._snapshotting = None
+        try:
+            return await asyncio.shield(self._start_snapshot())
+        except OSError as e:
+            raise RequestError("internal", f"snapshot failed: {e}") from None
 
     def _update_sizes(self) -> None:
         for name, t in self.state.tables.items():
@@ -511,7 +512,7 @@ async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
         info = {"host": cfg.host, "port": server.port, "metrics_port": server.metrics_port}
         info["pid"] = os.getpid()
         tmp = f"{port_file}.tmp"
-        with open(tmp, "w") as f:
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), "w") as f:
             json.dump(info, f)
         os.replace(tmp, port_file)
     try:

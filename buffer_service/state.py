@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import logging
 import random
+from dataclasses import dataclass
 from typing import Any
 
 from buffer_service.config import BufferConfig
 from buffer_service.episode import Episode, EpisodeSchema
-from buffer_service.tables import Key, Table
+from buffer_service.tables import Key, Table, TableCopy
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +40,26 @@ class SeqWindow:
             cut = len(ordered) // 2
             self.floor = ordered[cut - 1]
             self.seen = set(ordered[cut:])
+
+
+@dataclass
+class StateCopy:
+    """`BufferState.capture`'s result: the state at one moment, for a snapshot."""
+
+    schema: EpisodeSchema | None
+    tables: dict[str, TableCopy]
+    dedup: list[tuple[int, int, set[int]]]
+    duplicates: int
+    episodes: list[Episode]
+
+    def header(self) -> dict[str, Any]:
+        """The snapshot header: everything but the episodes (built off the event loop)."""
+        return {
+            "schema": self.schema.to_dict() if self.schema else None,
+            "tables": {name: t.to_state() for name, t in self.tables.items()},
+            "dedup": [[a, floor, sorted(seen)] for a, floor, seen in self.dedup],
+            "duplicates": self.duplicates,
+        }
 
 
 class BufferState:
@@ -68,7 +89,9 @@ class BufferState:
             self.duplicates += 1
             return False
         self.dedup.setdefault(key[0], SeqWindow(self.cfg.dedup_window)).add(key[1])
-        names = [n for n in table_names if n in self.tables]
+        # Distinct configured names: a table listed twice (logs of older versions) holds the
+        # episode once, and one dropped from the config since is skipped.
+        names = [n for n in dict.fromkeys(table_names) if n in self.tables]
         if not names:
             return True
         self.episodes[key] = ep
@@ -105,12 +128,19 @@ class BufferState:
 
     def header_state(self) -> dict[str, Any]:
         """Everything but the episodes themselves, for a snapshot."""
-        return {
-            "schema": self.schema.to_dict() if self.schema else None,
-            "tables": {name: t.to_state() for name, t in self.tables.items()},
-            "dedup": [[a, w.floor, sorted(w.seen)] for a, w in self.dedup.items()],
-            "duplicates": self.duplicates,
-        }
+        return self.capture().header()
+
+    def capture(self) -> StateCopy:
+        """A copy of the references that make up the state, cheap enough to take on the event
+        loop (flat C-level copies of the containers; the episodes are immutable and shared),
+        from which another thread can serialise a snapshot while the state moves on."""
+        return StateCopy(
+            schema=self.schema,
+            tables={name: t.capture() for name, t in self.tables.items()},
+            dedup=[(a, w.floor, w.seen.copy()) for a, w in self.dedup.items()],
+            duplicates=self.duplicates,
+            episodes=list(self.episodes.values()),
+        )
 
     def load_header(self, st: dict[str, Any]) -> None:
         if st["schema"] is not None:

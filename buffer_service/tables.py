@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import random
 from collections import deque
+from dataclasses import dataclass
 from typing import Any
 
 from buffer_service.config import RateLimiterConfig, TableConfig
@@ -47,6 +48,25 @@ class RateLimiter:
             return True
         diff, _, hi = self._bounds()
         return diff + n * self.cfg.samples_per_insert <= hi
+
+
+@dataclass
+class TableCopy:
+    """A table's keys, sample counts and counters at one moment (`Table.capture`)."""
+
+    order: list[Key]
+    times_sampled: dict[Key, int]
+    counters: tuple[int, int, int, int]  # inserts, samples, evicted, retired
+
+    def to_state(self) -> dict[str, Any]:
+        inserts, samples, evicted, retired = self.counters
+        return {
+            "items": [[k[0], k[1], self.times_sampled[k]] for k in self.order],
+            "inserts": inserts,
+            "samples": samples,
+            "evicted": evicted,
+            "retired": retired,
+        }
 
 
 class Table:
@@ -136,18 +156,19 @@ class Table:
 
     def to_state(self) -> dict[str, Any]:
         """Snapshot form: keys in FIFO order with their counts, plus limiter totals."""
-        return {
-            "items": [[k[0], k[1], self.times_sampled[k]] for k in self.order],
-            "inserts": self.limiter.inserts,
-            "samples": self.limiter.samples,
-            "evicted": self.evicted,
-            "retired": self.retired,
-        }
+        return self.capture().to_state()
+
+    def capture(self) -> TableCopy:
+        """The table at this moment, copied cheaply (see `BufferState.capture`)."""
+        counters = (self.limiter.inserts, self.limiter.samples, self.evicted, self.retired)
+        return TableCopy(list(self.order), dict(self.times_sampled), counters)
 
     def load_state(self, st: dict[str, Any]) -> None:
         self.order.clear()
         self.times_sampled.clear()
         for actor, seq, count in st["items"]:
+            if (actor, seq) in self.times_sampled:  # listed twice by an older version
+                continue
             self.order.append((actor, seq))
             self.times_sampled[(actor, seq)] = count
         while len(self.order) > self.cfg.capacity:  # capacity shrank between runs

@@ -91,7 +91,8 @@ class BufferProcess:
         port_file = self.folder / "port.json"
         port_file.unlink(missing_ok=True)
         env = {**os.environ, "CREDIT_BUFFER_TOKEN": self.token}
-        log_file = open(self.folder / "service.log", "a")  # noqa: SIM115 - the child owns it
+        log_fd = os.open(self.folder / "service.log", os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        log_file = os.fdopen(log_fd, "a")  # the child owns it
         self.proc = subprocess.Popen(
             self._command(port_file),
             env=env,

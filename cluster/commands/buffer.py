@@ -1,9 +1,11 @@
-"""`credit buffer serve`: run the episode buffer service in the foreground."""
+"""`credit buffer serve`: run the episode buffer service in the foreground;
+`credit buffer verify DIR`: check a snapshot folder offline and print what it holds (JSON)."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import logging
 import os
 
@@ -67,8 +69,32 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=BufferConfig.insert_timeout_s,
         help="longest rate-limiter wait of an insert, seconds",
     )
+    s.add_argument(
+        "--max-sample",
+        type=int,
+        default=BufferConfig.max_sample_episodes,
+        help="largest batch_size of one sample request",
+    )
+    s.add_argument(
+        "--repair",
+        action="store_true",
+        help="start from what a damaged --snapshot-dir still holds, discarding (and naming) "
+        "what cannot be read, instead of refusing to start",
+    )
     s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
     s.set_defaults(func=cmd_serve)
+    v = bsub.add_parser(
+        "verify", help="check a snapshot folder offline; print its tables, episodes and damage"
+    )
+    v.add_argument("dir", help="the service's --snapshot-dir")
+    v.add_argument(
+        "--table",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="tables to restore into when the files record none (format 1); as for serve",
+    )
+    v.set_defaults(func=cmd_verify)
 
 
 def _pairs(spec: str, what: str) -> dict[str, str]:
@@ -112,6 +138,8 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         snapshot_every_inserts=args.snapshot_every,
         sample_timeout_s=args.sample_timeout,
         insert_timeout_s=args.insert_timeout,
+        max_sample_episodes=args.max_sample,
+        repair=args.repair,
         metrics_port=args.metrics_port,
     )
     cfg.validate()
@@ -120,11 +148,30 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from buffer_service.server import run
+    from buffer_service.storage import StorageError
 
     try:
         cfg = build_config(args)
     except (ValueError, TypeError) as e:
         log.error("credit buffer serve: %s", e)
         return 2
-    run(cfg, port_file=args.port_file)
+    try:
+        run(cfg, port_file=args.port_file)
+    except StorageError as e:
+        log.error("credit buffer serve: refusing to start: %s", e)
+        return 2
     return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    """Print the folder's report as JSON; exit 0 when intact, 1 when anything is damaged."""
+    from buffer_service.verify import verify
+
+    try:
+        tables = tuple(parse_table(t) for t in args.table) or None
+        report = verify(args.dir, tables)
+    except (ValueError, TypeError, FileNotFoundError) as e:
+        log.error("credit buffer verify: %s", e)
+        return 2
+    print(json.dumps(report, indent=2))
+    return 0 if report["ok"] else 1

@@ -11,10 +11,13 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
 from buffer_service.server import start_server_thread
 from buffer_service.state import BufferState
+from buffer_service.storage import StorageError
 from tests.buffer_service.conftest import SCHEMA, make_episode, table
 
 REPO = Path(__file__).resolve().parents[2]
@@ -66,14 +69,18 @@ def test_torn_last_record_is_dropped(tmp_path):
     finally:
         c.close()
         srv.stop(snapshot=False)
-    with open(log_path, "ab") as f:  # garbage after valid records is ignored too
-        f.write(os.urandom(300))
-    srv, c = boot(tmp_path, snapshot_every_inserts=0)
+    size = log_path.stat().st_size
+    with open(log_path, "ab") as f:  # garbage after the records: not what a crash leaves
+        f.write(b"\x01" * 300)
+    with pytest.raises(StorageError, match=rf"log-00000000.bin.*300 bytes at offset {size}"):
+        boot(tmp_path, snapshot_every_inserts=0)
+    srv, c = boot(tmp_path, snapshot_every_inserts=0, repair=True)
     try:
         assert c.stats()["episodes_stored"] == 2
     finally:
         c.close()
         srv.stop(snapshot=False)
+    assert (tmp_path / "log-00000000.bin.damaged").exists()  # kept for inspection
 
 
 def test_snapshot_compacts_the_log(tmp_path):
@@ -81,10 +88,14 @@ def test_snapshot_compacts_the_log(tmp_path):
     for i in range(7):
         c.insert([make_episode(4, i)])
     c.sample("cycling", 7)
-    assert c.stats()["generation"] == 2  # snapshots after the 3rd and 6th insert
-    path = c.snapshot()
-    assert path.endswith("snapshot-00000003.bin")
-    assert sorted(os.listdir(tmp_path)) == ["log-00000003.bin", "snapshot-00000003.bin"]
+    path = c.snapshot()  # after those in progress (each insert's snapshot runs in a thread)
+    g = int(Path(path).name[len("snapshot-") : -len(".bin")])
+    assert g >= 2  # at least one snapshot was due before (they may coalesce)
+    assert c.stats()["generation"] == g
+    # the previous snapshot and its log stay as the fallback; older ones are gone
+    names = [f"log-{g - 1:08d}.bin", f"log-{g:08d}.bin"]
+    names += [f"snapshot-{g - 1:08d}.bin", f"snapshot-{g:08d}.bin"]
+    assert sorted(os.listdir(tmp_path)) == names
     c.insert([make_episode(4, 7)])
     c.close()
     srv.stop(snapshot=False)
@@ -104,13 +115,13 @@ def seqs_left(c: BufferClient) -> list[int]:
     return sorted(int(s) for s in c.sample("cycling", n).episode_seq)
 
 
-def _serve_cli(snap: Path, port: int, port_file: Path) -> subprocess.Popen:
+def _serve_cli(snap: Path, port: int, port_file: Path, capacity: int = 1000) -> subprocess.Popen:
     if port_file.exists():
         port_file.unlink()
     cmd = [
         sys.executable, "-m", "cluster.cli", "buffer", "serve", "--port", str(port),
         "--port-file", str(port_file), "--snapshot-dir", str(snap), "--snapshot-every", "7",
-        "--table", "name=all,kind=cycling,capacity=1000,max_times_sampled=1",
+        "--table", f"name=all,kind=cycling,capacity={capacity},max_times_sampled=1",
     ]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 30

@@ -247,22 +247,33 @@ def test_fuzz_server_survives_and_memory_stays_bounded():
         srv.stop(snapshot=False)
 
 
-def test_connection_limit_refuses_extra_connections():
+def test_connection_limit_refuses_only_when_every_slot_said_hello():
     srv = start_server_thread(BufferConfig(schema=SCHEMA, max_connections=4))
+    clients = [BufferClient(port=srv.port, max_retries=0) for _ in range(4)]
     socks = []
     try:
-        for _ in range(12):
-            socks.append(socket.create_connection(("127.0.0.1", srv.port), timeout=5))
-        extra = socks[-1]
+        for c in clients:
+            c.stats()  # four connections that completed their hello: the server is full
+        extra = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+        socks.append(extra)
         extra.sendall(_frame(hello()))
         assert _read_reply(extra) == "closed"
-        for s in socks:
-            s.close()
-        # the first four slots free up as the server sees the closes; a client gets in
-        client = BufferClient(port=srv.port, max_retries=20, backoff_s=0.05)
-        assert client.stats()["tables"]["replay"]["size"] == 0
-        client.close()
+        clients.pop().close()
+        # the slot frees once the server sees the close; then stalled sockets (no hello)
+        # give way to newcomers instead of locking them out
+        retrying = BufferClient(port=srv.port, max_retries=20, backoff_s=0.05)
+        clients.append(retrying)
+        assert retrying.stats()["connections"] == 4
+        clients.pop().close()
+        for _ in range(12):
+            socks.append(socket.create_connection(("127.0.0.1", srv.port), timeout=5))
+            socks[-1].sendall(b"\0\0\0")
+        late = BufferClient(port=srv.port, max_retries=0)
+        clients.append(late)
+        assert late.stats()["tables"]["replay"]["size"] == 0
     finally:
         for s in socks:
             s.close()
+        for c in clients:
+            c.close()
         srv.stop(snapshot=False)
