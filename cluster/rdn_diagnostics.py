@@ -121,9 +121,8 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
         real = tb.mask.bool()
 
         def split(h: torch.Tensor, acts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            x = learner.critic_inputs(h, acts)
-            rel, q = lrp_epsilon(learner.critic, x, cfg.lrp_eps, cfg.lrp_rule)
-            return agent_relevance(rel, n).view(e, b, t, n), q.view(e, b, t)
+            shares, q = learner.agent_targets(learner.critic_inputs(h, acts))
+            return shares.view(e, b, t, n), q.view(e, b, t)
 
         r0, q0 = split(hist, tb.actions)
         agent_q = unroll(learner.agent, agent_inputs(tb.obs, tb.actions, a_n))[:, :, :-1]

@@ -32,7 +32,13 @@ from learner.common import (
     Updater,
     validate_value_schedule,
 )
-from learner.lrp import LRP_RULES, agent_relevance, agent_relevance_all_actions, lrp_epsilon
+from learner.lrp import (
+    LRP_RULES,
+    agent_relevance,
+    agent_relevance_all_actions,
+    lrp_difference,
+    lrp_epsilon,
+)
 from learner.networks import MLP, unroll
 from learner.targets import q_lambda_targets
 
@@ -59,6 +65,9 @@ class RDNConfig:
             agent i's LRP share of Q_c(x)) or "all_actions" (every available action a of
             agent i regresses onto its LRP share of Q_c with its action moved to a, the
             others' actions fixed; module docstring).
+        lrp_reference: "zero" (the seed's LRP-ε of the critic's value) or "no_actions" (the
+            value without actions split by LRP-ε, the actions' difference split by the ε-rule
+            on deviations; `RDNLearner.agent_targets`).
         joint_max_limit: largest joint action space "joint_max" may enumerate.
         agent: the shared agent network.
     """
@@ -76,6 +85,7 @@ class RDNConfig:
     lrp_eps: float = 0.01
     next_action: Literal["greedy", "joint_max"] = "greedy"
     agent_targets: Literal["taken", "all_actions"] = "taken"
+    lrp_reference: Literal["zero", "no_actions"] = "zero"
     joint_max_limit: int = 1024
     agent: AgentConfig = field(default_factory=AgentConfig)
 
@@ -100,6 +110,8 @@ class RDNConfig:
             )
         if self.lrp_rule not in LRP_RULES:
             raise ValueError(f"lrp_rule must be one of {LRP_RULES}")
+        if self.agent_targets == "all_actions" and self.lrp_reference != "zero":
+            raise ValueError("agent_targets=all_actions needs lrp_reference=zero")
         if self.agent_targets == "all_actions" and self.lrp_rule == "grad_x_input":
             raise ValueError(
                 "agent_targets=all_actions needs an epsilon lrp_rule, not grad_x_input"
@@ -178,6 +190,29 @@ class RDNLearner(AgentCriticLearner):
             values.append(v.masked_fill(~allowed, -1e10))
         return torch.stack(values, -1).max(-1).values
 
+    def agent_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each agent's LRP share of the critic's value for critic inputs x [E, M, N*block]:
+        (shares [E, M, N], Q_c(x) [E, M]).
+
+        lrp_reference "zero" (the seed's): LRP-ε of Q_c(x), agent i's share the relevance of
+        its block. "no_actions": the same split of Q_c(x̄), x̄ = x with every action one-hot
+        removed (what the agents' observations are worth), plus each agent's relevance in the
+        difference Q_c(x) - Q_c(x̄) (`lrp_difference`), which only the action bits carry; the
+        shares still add up to Q_c(x).
+        """
+        cfg, n = self.cfg, self.info.n_agents
+        if cfg.lrp_reference == "zero":
+            relevance, q = lrp_epsilon(self.critic, x, cfg.lrp_eps, cfg.lrp_rule)
+            return agent_relevance(relevance, n), q
+        e, m, _ = x.shape
+        start = cfg.obs_window * self.info.obs_dim
+        x_ref = x.view(e, m, n, self.block).clone()
+        x_ref[..., start : start + self.info.n_actions] = 0.0
+        x_ref = x_ref.view_as(x)
+        base, q_ref = lrp_epsilon(self.critic, x_ref, cfg.lrp_eps, cfg.lrp_rule)
+        diff, delta = lrp_difference(self.critic, x, x_ref, cfg.lrp_eps)
+        return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta
+
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
         tb = TensorBatch.from_episodes(batch, self.device)
@@ -195,8 +230,8 @@ class RDNLearner(AgentCriticLearner):
         critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
         self.critic_updater.apply(critic_loss)
 
-        relevance, q_tot = lrp_epsilon(self.critic, x, self.cfg.lrp_eps, self.cfg.lrp_rule)
-        targets = agent_relevance(relevance, n).view(e, b, t, n)
+        targets, q_tot = self.agent_targets(x)
+        targets = targets.view(e, b, t, n)
         if self.cfg.agent_targets == "all_actions":
             every = agent_relevance_all_actions(
                 self.critic,

@@ -150,3 +150,26 @@ def test_lrp_difference_of_a_linear_map_is_each_inputs_own_term():
     ref = torch.tensor([[[0.0, 0.0, 1.0]]])
     rel, _ = lrp_difference(mlp, x, ref, eps=1e-9)
     torch.testing.assert_close(rel, torch.tensor([[[2.0, -2.0, 1.0]]]), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("reference", ["zero", "no_actions"])
+@pytest.mark.parametrize("targets", ["taken", "all_actions"])
+def test_rdn_agent_targets_add_up_to_the_critic_value(reference, targets):
+    """Both splits conserve: the agents' targets sum to Q_c(x); RDN steps with every option."""
+    from actors.envs.registry import make_vec_env
+    from buffer_service.episode import EpisodeBatch
+    from cluster.bench.update import record_batch
+    from learner.rdn import RDNConfig, RDNLearner
+
+    if targets == "all_actions" and reference != "zero":
+        with pytest.raises(ValueError, match="needs lrp_reference=zero"):
+            RDNConfig(agent_targets=targets, lrp_reference=reference).validate()
+        return
+    cfg = RDNConfig(agent_targets=targets, lrp_reference=reference)
+    cfg.validate()
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    learner = RDNLearner(cfg, schema)
+    batch = record_batch("skirmish/3m", 4, 1)
+    assert isinstance(batch, EpisodeBatch)
+    metrics = learner.step(batch)
+    assert metrics["lrp_conservation_gap"] < 1e-3
