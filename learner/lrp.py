@@ -100,6 +100,51 @@ def agent_relevance(relevance: torch.Tensor, n_agents: int) -> torch.Tensor:
     return relevance.view(e, m, n_agents, d // n_agents).sum(-1)
 
 
+def _counterfactual_forward(
+    mlp: MLP, x: torch.Tensor, actions: torch.Tensor, n: int, action_offset: int, a: int
+) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+    """The critic on every single-agent action change of x (see
+    `agent_relevance_all_actions`): the first layer's per-agent contributions [E, M, N, H] and
+    weight-row shifts [E, M, N, A, H], then every layer's activations and pre-activations with
+    the (agent, action) variants as rows [E, M*N*A, .]."""
+    e, m, d = x.shape
+    block = d // n
+    first = mlp.layers[0]
+    w1 = first.weight.view(e, n, block, -1)  # [E, N, block, H]
+    contrib = torch.einsum("emnb,enbh->emnh", x.view(e, m, n, block), w1)  # [E, M, N, H]
+    w_act = w1[:, :, action_offset : action_offset + a]  # [E, N, A, H]
+    h = w_act.shape[-1]
+    taken = torch.gather(
+        w_act.unsqueeze(1).expand(e, m, n, a, h),
+        3,
+        actions.view(e, m, n, 1, 1).expand(e, m, n, 1, h),
+    )  # [E, M, N, 1, H]
+    delta = w_act.unsqueeze(1) - taken  # [E, M, N, A, H]
+    z1 = contrib.sum(2)[:, :, None, None, :] + first.bias.view(e, 1, 1, 1, -1) + delta
+    acts, zs = [torch.relu(z1).reshape(e, m * n * a, h)], [z1.reshape(e, m * n * a, h)]
+    for layer in mlp.layers[1:]:
+        z = torch.baddbmm(layer.bias, acts[-1], layer.weight)
+        zs.append(z)
+        acts.append(torch.relu(z))
+    return contrib, delta, acts, zs
+
+
+def critic_all_actions(
+    mlp: MLP,
+    x: torch.Tensor,
+    actions: torch.Tensor,
+    n_agents: int,
+    action_offset: int,
+    n_actions: int,
+) -> torch.Tensor:
+    """The critic's value with agent i's action moved to a, the others' fixed, for every
+    (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`)."""
+    e, m, _ = x.shape
+    with torch.no_grad():
+        _, _, _, zs = _counterfactual_forward(mlp, x, actions, n_agents, action_offset, n_actions)
+    return zs[-1].view(e, m, n_agents, n_actions)
+
+
 def agent_relevance_all_actions(
     mlp: MLP,
     x: torch.Tensor,
@@ -136,24 +181,9 @@ def agent_relevance_all_actions(
     block = d // n
     first = mlp.layers[0]
     with torch.no_grad():
-        w1 = first.weight.view(e, n, block, -1)  # [E, N, block, H]
-        contrib = torch.einsum("emnb,enbh->emnh", x.view(e, m, n, block), w1)  # [E, M, N, H]
-        w_act = w1[:, :, action_offset : action_offset + a]  # [E, N, A, H]
-        taken = torch.gather(
-            w_act.unsqueeze(1).expand(e, m, n, a, -1),
-            3,
-            actions.view(e, m, n, 1, 1).expand(e, m, n, 1, w_act.shape[-1]),
-        )  # [E, M, N, 1, H]
-        delta = w_act.unsqueeze(1) - taken  # [E, M, N, A, H]
-        z1 = contrib.sum(2)[:, :, None, None, :] + first.bias.view(e, 1, 1, 1, -1) + delta
+        contrib, delta, acts, zs = _counterfactual_forward(mlp, x, actions, n, action_offset, a)
         own = contrib[:, :, :, None, :] + delta  # agent i's own contribution in variant (i, a)
-        h = z1.shape[-1]
-        # forward through the layers above the first, every variant as a row
-        acts, zs = [torch.relu(z1).reshape(e, m * n * a, h)], [z1.reshape(e, m * n * a, h)]
-        for layer in mlp.layers[1:]:
-            z = torch.baddbmm(layer.bias, acts[-1], layer.weight)
-            zs.append(z)
-            acts.append(torch.relu(z))
+        h = own.shape[-1]
         out = zs[-1]  # the linear output, [E, MNA, 1]
         relevance = out
         for k in range(len(mlp.layers) - 1, 0, -1):

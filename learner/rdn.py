@@ -36,6 +36,7 @@ from learner.lrp import (
     LRP_RULES,
     agent_relevance,
     agent_relevance_all_actions,
+    critic_all_actions,
     lrp_difference,
     lrp_epsilon,
 )
@@ -64,7 +65,10 @@ class RDNConfig:
         agent_targets: "taken" (the seed's: Q_i(o_i, u_i) of the taken action regresses onto
             agent i's LRP share of Q_c(x)) or "all_actions" (every available action a of
             agent i regresses onto its LRP share of Q_c with its action moved to a, the
-            others' actions fixed; module docstring).
+            others' actions fixed) or "counterfactual" (the taken action's target is its
+            LRP share; every other available action a gets that share plus the critic's own
+            difference Q_c(x with agent i's action a) - Q_c(x), so the agent's action ranking
+            is the critic's and its level is its LRP credit).
         lrp_reference: "zero" (the seed's LRP-ε of the critic's value) or "no_actions" (the
             value without actions split by LRP-ε, the actions' difference split by the ε-rule
             on deviations; `RDNLearner.agent_targets`).
@@ -84,7 +88,7 @@ class RDNConfig:
     lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
     lrp_eps: float = 0.01
     next_action: Literal["greedy", "joint_max"] = "greedy"
-    agent_targets: Literal["taken", "all_actions"] = "taken"
+    agent_targets: Literal["taken", "all_actions", "counterfactual"] = "taken"
     lrp_reference: Literal["zero", "no_actions"] = "zero"
     joint_max_limit: int = 1024
     agent: AgentConfig = field(default_factory=AgentConfig)
@@ -232,7 +236,19 @@ class RDNLearner(AgentCriticLearner):
 
         targets, q_tot = self.agent_targets(x)
         targets = targets.view(e, b, t, n)
-        if self.cfg.agent_targets == "all_actions":
+        if self.cfg.agent_targets == "counterfactual":
+            q_alt = critic_all_actions(
+                self.critic,
+                x,
+                tb.actions.reshape(e, b * t, n),
+                n,
+                self.cfg.obs_window * self.info.obs_dim,
+                self.info.n_actions,
+            ).view(e, b, t, n, -1)
+            every = targets.unsqueeze(-1) + q_alt - q_tot.view(e, b, t, 1, 1)
+            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
+            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
+        elif self.cfg.agent_targets == "all_actions":
             every = agent_relevance_all_actions(
                 self.critic,
                 x,

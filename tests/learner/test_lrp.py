@@ -7,6 +7,7 @@ from learner.lrp import (
     LRP_RULES,
     agent_relevance,
     agent_relevance_all_actions,
+    critic_all_actions,
     lrp_difference,
     lrp_epsilon,
 )
@@ -153,7 +154,7 @@ def test_lrp_difference_of_a_linear_map_is_each_inputs_own_term():
 
 
 @pytest.mark.parametrize("reference", ["zero", "no_actions"])
-@pytest.mark.parametrize("targets", ["taken", "all_actions"])
+@pytest.mark.parametrize("targets", ["taken", "all_actions", "counterfactual"])
 def test_rdn_agent_targets_add_up_to_the_critic_value(reference, targets):
     """Both splits conserve: the agents' targets sum to Q_c(x); RDN steps with every option."""
     from actors.envs.registry import make_vec_env
@@ -173,3 +174,24 @@ def test_rdn_agent_targets_add_up_to_the_critic_value(reference, targets):
     assert isinstance(batch, EpisodeBatch)
     metrics = learner.step(batch)
     assert metrics["lrp_conservation_gap"] < 1e-3
+
+
+def test_critic_all_actions_is_the_critic_on_each_counterfactual():
+    torch.manual_seed(2)
+    e, m, n, a, obs = 2, 4, 3, 5, 4
+    block = obs + a + n
+    mlp = MLP(e, n * block, (8, 8), 1)
+    o = torch.randn(e, m, n, obs)
+    acts = torch.randint(0, a, (e, m, n))
+
+    def inputs(actions):
+        ids = torch.eye(n).expand(e, m, n, n)
+        onehot = torch.nn.functional.one_hot(actions, a).float()
+        return torch.cat([o, onehot, ids], -1).reshape(e, m, n * block)
+
+    got = critic_all_actions(mlp, inputs(acts), acts, n, obs, a)
+    for i in range(n):
+        for u in range(a):
+            alt = acts.clone()
+            alt[..., i] = u
+            torch.testing.assert_close(got[..., i, u], mlp(inputs(alt)).squeeze(-1))
