@@ -208,13 +208,13 @@ class AgentCriticLearner:
         self.updates = int(state["updates"])
 
 
-REWARD_NORMS = ("off", "scale", "standardise")
+REWARD_NORMS = ("none", "scale", "standardise")
 
 
 class RewardNorm:
     """Running reward statistics per ensemble member, applied to every batch a learner trains
     on: "scale" divides rewards by their running standard deviation, "standardise" also
-    subtracts the running mean (EPyMARL's `standardise_rewards`), "off" leaves them alone.
+    subtracts the running mean (EPyMARL's `standardise_rewards`), "none" leaves them alone.
     Statistics come from the real (unpadded) transitions of each batch before it is used.
 
     Shapes: reward, mask [E, B, T] -> [E, B, T].
@@ -229,7 +229,7 @@ class RewardNorm:
         self.m2 = torch.zeros(n_ensemble, dtype=torch.float64, device=device)
 
     def __call__(self, reward: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        if self.mode == "off":
+        if self.mode == "none":
             return reward
         dims = tuple(range(1, reward.dim()))
         n = mask.sum(dims).double()

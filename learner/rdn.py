@@ -55,7 +55,7 @@ class RDNConfig:
         target_update_episodes: inserted episodes between hard copies into the target critic
             (as the value family's).
         optimiser: "adam" or "rmsprop".
-        reward_norm: "off", "scale" or "standardise" (as the value family's).
+        reward_norm: "none", "scale" or "standardise" (as the value family's).
         td_lambda: λ of the critic's Q(λ) targets (0: one-step TD).
         critic_hidden: hidden widths of the central critic MLP.
         obs_window: how many of each agent's latest observations the critic sees.
@@ -81,7 +81,7 @@ class RDNConfig:
     grad_norm_clip: float = 10.0
     target_update_episodes: int = 200
     optimiser: Literal["adam", "rmsprop"] = "adam"
-    reward_norm: Literal["off", "scale", "standardise"] = "off"
+    reward_norm: Literal["none", "scale", "standardise"] = "none"
     td_lambda: float = 0.0
     critic_hidden: tuple[int, ...] = (64, 64)
     obs_window: int = 4

@@ -43,7 +43,7 @@ class ValueConfig:
             (counted in episodes, so independent of actors, num_envs and the update rate;
             PyMARL's 200).
         optimiser: "adam" or "rmsprop" (PyMARL's α 0.99, ε 1e-5).
-        reward_norm: "off", "scale" (divide by the running std) or "standardise" (also
+        reward_norm: "none", "scale" (divide by the running std) or "standardise" (also
             subtract the running mean; EPyMARL's standardise_rewards).
         td_lambda: λ of the Q(λ) targets built from the target network (0: one-step TD).
         double_q: pick the next action with the online network, evaluate with the target.
@@ -57,7 +57,7 @@ class ValueConfig:
     grad_norm_clip: float = 10.0
     target_update_episodes: int = 200
     optimiser: Literal["adam", "rmsprop"] = "adam"
-    reward_norm: Literal["off", "scale", "standardise"] = "off"
+    reward_norm: Literal["none", "scale", "standardise"] = "none"
     td_lambda: float = 0.0
     double_q: bool = True
     mixer_embed: int = 32

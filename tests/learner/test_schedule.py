@@ -44,7 +44,7 @@ def test_reward_norm_by_hand():
     torch.testing.assert_close(scaled, r / std * mask)
     standard = RewardNorm("standardise", 1)(r, mask)
     torch.testing.assert_close(standard, (r - mean) / std * mask)
-    assert RewardNorm("off", 1)(r, mask) is r
+    assert RewardNorm("none", 1)(r, mask) is r
     # statistics accumulate over batches exactly as over their union
     norm = RewardNorm("scale", 1)
     norm(r[:, :1], mask[:, :1])
