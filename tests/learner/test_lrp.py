@@ -104,6 +104,15 @@ def test_ensemble_members_are_independent():
     assert not torch.allclose(rel0[1], rel1[1])
 
 
+def _blocks(o: torch.Tensor, actions: torch.Tensor, a: int) -> torch.Tensor:
+    """Critic inputs from observations o [E, M, N, O] and actions [E, M, N]: per agent
+    [obs, action one-hot, id one-hot], blocks laid end to end."""
+    e, m, n, _ = o.shape
+    ids = torch.eye(n).expand(e, m, n, n)
+    onehot = torch.nn.functional.one_hot(actions, a).float()
+    return torch.cat([o, onehot, ids], -1).reshape(e, m, -1)
+
+
 @pytest.mark.parametrize("rule", ["eps_residual", "eps", "eps_nobias"])
 def test_all_actions_shares_match_one_lrp_call_per_counterfactual(rule):
     """The first-layer shortcut gives exactly what N·A separate LRP calls give."""
@@ -114,17 +123,12 @@ def test_all_actions_shares_match_one_lrp_call_per_counterfactual(rule):
     o = torch.randn(e, m, n, obs)
     acts = torch.randint(0, a, (e, m, n))
 
-    def inputs(actions):
-        ids = torch.eye(n).expand(e, m, n, n)
-        onehot = torch.nn.functional.one_hot(actions, a).float()
-        return torch.cat([o, onehot, ids], -1).reshape(e, m, n * block)
-
-    got = agent_relevance_all_actions(mlp, inputs(acts), acts, n, obs, a, 0.01, rule)
+    got = agent_relevance_all_actions(mlp, _blocks(o, acts, a), acts, n, obs, a, 0.01, rule)
     for i in range(n):
         for u in range(a):
             alt = acts.clone()
             alt[..., i] = u
-            rel, _ = lrp_epsilon(mlp, inputs(alt), 0.01, rule)
+            rel, _ = lrp_epsilon(mlp, _blocks(o, alt, a), 0.01, rule)
             torch.testing.assert_close(got[..., i, u], agent_relevance(rel, n)[..., i])
 
 
@@ -184,14 +188,9 @@ def test_critic_all_actions_is_the_critic_on_each_counterfactual():
     o = torch.randn(e, m, n, obs)
     acts = torch.randint(0, a, (e, m, n))
 
-    def inputs(actions):
-        ids = torch.eye(n).expand(e, m, n, n)
-        onehot = torch.nn.functional.one_hot(actions, a).float()
-        return torch.cat([o, onehot, ids], -1).reshape(e, m, n * block)
-
-    got = critic_all_actions(mlp, inputs(acts), acts, n, obs, a)
+    got = critic_all_actions(mlp, _blocks(o, acts, a), acts, n, obs, a)
     for i in range(n):
         for u in range(a):
             alt = acts.clone()
             alt[..., i] = u
-            torch.testing.assert_close(got[..., i, u], mlp(inputs(alt)).squeeze(-1))
+            torch.testing.assert_close(got[..., i, u], mlp(_blocks(o, alt, a)).squeeze(-1))
