@@ -284,7 +284,10 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     assert after.strip() == "after 1", "cluster down stopped another run's Ray instance"
 
 
-@pytest.mark.parametrize("actors, num_envs", [(1, 1), (2, 4)])
+@pytest.mark.parametrize(
+    "actors, num_envs",
+    [pytest.param(1, 1, marks=pytest.mark.slow), (2, 4)],  # 1 x 1: `make test-slow` (36 s)
+)
 def test_updates_and_target_refreshes_per_episode_do_not_depend_on_actors(
     tmp_path, env, actors, num_envs
 ):
@@ -294,13 +297,13 @@ def test_updates_and_target_refreshes_per_episode_do_not_depend_on_actors(
     network is copied once per 50 episodes."""
     out = tmp_path / "run"
     args = ["--algo", "vdn", "--env", "matrix/two_step", "--mode", "cluster"]
-    args += ["--actors", str(actors), "--t-max", "800", "--out", str(out)]
+    args += ["--actors", str(actors), "--t-max", "500", "--out", str(out)]
     for kv in (
         f"run.num_envs={num_envs}",
         "replay.updates_per_episode=2",
         "replay.batch_size=4",
         "algo.target_update_episodes=50",
-        "run.test_interval=400",
+        "run.test_interval=250",
     ):
         args += ["--set", kv]
     done = subprocess.run(_cli(args), env=env, capture_output=True, text=True, timeout=300)

@@ -37,7 +37,7 @@ def _seqs(batch) -> list[int]:
         ("coma", 4, 4, None, 0),
         ("ecac", 4, 32, 5000, 32),
         ("emcac", 4, 32, 5000, 32),
-        ("qmix", 8, None, 1000, 0),  # the value family keeps skirmish's 8 envs and replay
+        ("qmix", 8, None, 5000, 0),  # value family: 8 envs, configs/envs/skirmish.value.yaml
     ],
 )
 def test_shipped_layers_give_the_seeds_data_flow_on_skirmish(
@@ -55,6 +55,8 @@ def test_shipped_layers_give_the_seeds_data_flow_on_skirmish(
     if replay is not None:
         assert tables["replay"].capacity == replay
     assert plan.extra_batch_size == extra_batch
+    # one learner step per round of new episodes for the PG family, one per episode (value)
+    assert plan.updates_per_episode == (1.0 if cycling is None else 1 / num_envs)
 
 
 def test_pg_configs_carry_the_seed_hyper_parameters():
