@@ -34,6 +34,45 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(self.bias, x, self.weight)
 
 
+class AgentBlockLinear(nn.Module):
+    """One affine map shared by N agents' input blocks laid end to end: agent i's block
+    [i*block, (i+1)*block) goes to its own H units [i*H, (i+1)*H), with the same weights for
+    every agent (a per-agent encoder with parameter sharing, as the agents' networks have).
+
+    As a layer it is the dense layer whose weight is block-diagonal, so `weight` and `bias`
+    expose that dense form ([E, N*block, N*H], [E, 1, N*H]) for LRP; `forward` computes it
+    per block. Shapes: x [E, M, N*block] -> [E, M, N*H].
+    """
+
+    def __init__(self, n_ensemble: int, n_agents: int, block: int, hidden: int):
+        super().__init__()
+        self.n_agents, self.block, self.hidden = n_agents, block, hidden
+        self.in_features, self.out_features = n_agents * block, n_agents * hidden
+        bound = 1.0 / math.sqrt(block)
+        self.block_weight = nn.Parameter(
+            torch.empty(n_ensemble, block, hidden).uniform_(-bound, bound)
+        )
+        self.block_bias = nn.Parameter(torch.empty(n_ensemble, 1, hidden).uniform_(-bound, bound))
+
+    @property
+    def weight(self) -> torch.Tensor:
+        eye = torch.eye(
+            self.n_agents, dtype=self.block_weight.dtype, device=self.block_weight.device
+        )
+        full = torch.einsum("ij,epq->eipjq", eye, self.block_weight)
+        return full.reshape(-1, self.in_features, self.out_features)
+
+    @property
+    def bias(self) -> torch.Tensor:
+        return self.block_bias.repeat(1, 1, self.n_agents)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        e, m, _ = x.shape
+        xb = x.reshape(e, m * self.n_agents, self.block)
+        out = torch.baddbmm(self.block_bias, xb, self.block_weight)
+        return out.view(e, m, self.out_features)
+
+
 class EnsembleGRUCell(nn.Module):
     """E independent GRU cells (PyTorch's gate equations). Shapes: x [E, M, in], h [E, M, H]."""
 
@@ -112,16 +151,23 @@ class AgentNet(nn.Module):
 class MLP(nn.Module):
     """ReLU MLP with a linear output, e.g. the central critic 64-64-1.
 
-    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP.
+    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP. With `first` given
+    (e.g. an `AgentBlockLinear`), that layer comes first and `in_features` is ignored.
     """
 
     def __init__(
-        self, n_ensemble: int, in_features: int, hidden: tuple[int, ...], out_features: int = 1
+        self,
+        n_ensemble: int,
+        in_features: int,
+        hidden: tuple[int, ...],
+        out_features: int = 1,
+        first: nn.Module | None = None,
     ):
         super().__init__()
-        sizes = [in_features, *hidden, out_features]
+        head = [] if first is None else [first]
+        sizes = [in_features if first is None else first.out_features, *hidden, out_features]
         self.layers = nn.ModuleList(
-            EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)
+            head + [EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)]
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
