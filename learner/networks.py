@@ -17,6 +17,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from learner.batch import AgentBlocks
+
 
 class EnsembleLinear(nn.Module):
     """E independent affine maps. Shapes: x [E, M, in] -> [E, M, out]."""
@@ -112,7 +114,9 @@ class AgentNet(nn.Module):
 class MLP(nn.Module):
     """ReLU MLP with a linear output, e.g. the central critic 64-64-1.
 
-    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP.
+    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP. An `AgentBlocks` input
+    (RDN's critic input, kept as its parts) goes through the first layer by
+    `block_contributions`, which multiplies each observation once instead of the dense input.
     """
 
     def __init__(
@@ -124,19 +128,59 @@ class MLP(nn.Module):
             EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)
         )
 
+    def first(self, x: torch.Tensor) -> torch.Tensor:
+        """The first layer's pre-activation, [E, M, hidden[0]]."""
+        if isinstance(x, AgentBlocks):
+            return block_contributions(self.layers[0], x).sum(2) + self.layers[0].bias
+        return self.layers[0](x)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
-        return self.layers[-1](x)
+        return self.activations(x)[-1]
 
     def activations(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Inputs of every layer followed by the output: [x, a1, ..., a_L, y]."""
         acts = [x]
-        for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
-            acts.append(x)
-        acts.append(self.layers[-1](x))
+        z = self.first(x)
+        for layer in self.layers[1:]:
+            acts.append(F.relu(z))
+            z = layer(acts[-1])
+        acts.append(z)
         return acts
+
+
+def block_contributions(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """Each agent's block's part of a linear layer's pre-activation: c [E, M, N, H] with
+    layer(x) = c.sum(2) + bias (differentiable in the layer's weight).
+
+    c_i = Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i], where W_i,w are the rows
+    of agent i's window slot w. Every non-zero observation is multiplied once by all W of its
+    slots' weights ([K, O] x [O, W*H] per member and agent) and added into the windows it
+    sits in; all-zero observations (dead agents, padding) are skipped, as are the zeros of
+    the one-hots (a row lookup). The dense product x @ W does W times as many multiplications
+    per observation, most of them by zero.
+    """
+    e, m, _ = x.shape
+    n, w, o, a, h = x.n_agents, x.window, x.obs_dim, x.n_actions, layer.out_features
+    wb = layer.weight.view(e, n, x.block, h)
+    w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
+    w_obs = w_obs.reshape(e * n, o, w * h)  # one copy: agent i's [O, W*H] for each member
+    rows, counts, slots = x.alive_rows()
+    parts = [
+        torch.mm(r, wt)
+        for r, wt, k in zip(rows.split(counts), w_obs.unbind(0), counts, strict=True)
+        if k
+    ]
+    proj = torch.cat(parts).view(-1, w, h) if parts else rows.new_zeros(0, w, h)
+    hist = layer.weight.new_zeros(e * x.episodes * x.steps * n, h)
+    for k, (which, flat) in enumerate(slots):
+        hist = hist.index_add(0, flat, proj[which, k])
+    acts = wb[:, :, w * o : w * o + a]  # [E, N, A, H]
+    member = torch.arange(e, device=acts.device).view(e, 1, 1, 1)
+    agent = torch.arange(n, device=acts.device).view(1, 1, 1, n)
+    own_action = acts[member, agent, x.actions]  # [E, B, T', N, H]
+    own_id = torch.diagonal(wb[:, :, w * o + a :], dim1=1, dim2=2).transpose(1, 2)  # [E, N, H]
+    c = hist.view(e, x.episodes, x.steps, n, h) + own_action + own_id.view(e, 1, 1, n, h)
+    return c.view(e, m, n, h)
 
 
 class QMixer(nn.Module):
