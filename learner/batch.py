@@ -7,6 +7,7 @@ S (state), A (actions). Time-indexed inputs have T+1 steps (the last for bootstr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch.nn import functional as F
@@ -83,78 +84,103 @@ def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> to
 def obs_history(obs: torch.Tensor, window: int) -> torch.Tensor:
     """Each step's last `window` observations, oldest first, zero before the episode start.
 
-    The result is a read-only view (no copy of the windows): every agent's observations are
-    laid out once, time-major after window - 1 zero steps, and window t is the `window * O`
-    consecutive floats starting at step t, so consecutive windows overlap in memory (time
-    stride O). Writing into it would change several windows at once; take `.clone()` (or
-    `.contiguous()`) for a writable copy. `AgentBlocks` reads each observation once from it.
+    Returned as `ObsWindows`, which keeps `obs` and computes the windows only when an
+    operation needs them (its slices along time stay lazy); `AgentBlocks` reads the
+    observations from it directly.
 
     Args:
         obs: [E, B, T', N, O].
     Returns:
         [E, B, T', N, window * O].
     """
-    e, b, tp, n, o = obs.shape
-    s = tp + window - 1
-    series = obs.new_empty(e, b, n, s, o)
-    series[:, :, :, : window - 1] = 0.0
-    series[:, :, :, window - 1 :] = obs.transpose(2, 3)
-    st = series.stride()
-    return series.as_strided((e, b, tp, n, window * o), (st[0], st[1], o, st[2], 1))
+    return ObsWindows(obs, window)
 
 
-def window_series(hist: torch.Tensor, window: int) -> torch.Tensor | None:
-    """The observations behind a window view: series [E, B, T'+window-1, N, O] with
-    hist[:, :, t, :, w*O:(w+1)*O] == series[:, :, t + w] for every t and w, or None when
-    `hist` is not laid out as such a view.
+def obs_windows_dense(obs: torch.Tensor, window: int) -> torch.Tensor:
+    """`obs_history` as one dense tensor [E, B, T', N, window * O]."""
+    pad = obs.new_zeros(*obs.shape[:2], window - 1, *obs.shape[3:])
+    padded = torch.cat([pad, obs], dim=2)
+    tp = obs.shape[2]
+    return torch.cat([padded[:, :, i : i + tp] for i in range(window)], dim=-1)
 
-    A tensor whose time stride equals O (and whose feature stride is 1) holds window t's slot
-    w at the same address as window t+w's slot 0, whatever made it; `obs_history`'s result and
-    its slices along time are such tensors, a dense [E, B, T', N, W*O] tensor is not.
-    """
-    e, b, tp, n, wo = hist.shape
-    o = wo // window
-    if hist.stride(4) != 1 or wo != window * o or (tp > 1 and hist.stride(2) != o):
-        return None
-    st = hist.stride()
-    return hist.as_strided(
-        (e, b, tp + window - 1, n, o), (st[0], st[1], o, st[3], 1), hist.storage_offset()
-    )
+
+class ObsWindows(LazyTensor):
+    """The windows of `obs_history` for steps start .. start+steps-1 of obs, [E, B, steps, N,
+    window * O], kept as obs (read-only). Slicing along time gives another ObsWindows of the
+    same obs; anything else sees the dense windows."""
+
+    def __new__(cls, obs: torch.Tensor, window: int, start: int = 0, steps: int | None = None):
+        e, b, tp, n, o = obs.shape
+        steps = tp - start if steps is None else steps
+        return super().__new__(cls, (e, b, steps, n, window * o), obs)
+
+    def __init__(self, obs: torch.Tensor, window: int, start: int = 0, steps: int | None = None):
+        super().__init__(tuple(self.shape), obs)
+        self.obs, self.window, self.start, self.steps = obs, window, start, self.shape[2]
+        self._norms: list[torch.Tensor] = []  # shared by every slice of the same windows
+
+    def materialise(self) -> torch.Tensor:
+        stop = self.start + self.steps
+        return obs_windows_dense(self.obs[:, :, :stop], self.window)[:, :, self.start :]
+
+    def structured(self, func: Any, args: tuple, kwargs: dict) -> Any:
+        if func is not torch.ops.aten.slice.Tensor or kwargs:
+            return NotImplemented
+        dim, lo, hi, step = (list(args[1:]) + [0, None, None, 1][len(args) - 1 :])[:4]
+        if dim not in (2, -3) or step != 1:
+            return NotImplemented
+        lo, hi, _ = slice(lo, hi).indices(self.steps)
+        part = ObsWindows(self.obs, self.window, self.start + lo, max(hi - lo, 0))
+        part._norms = self._norms
+        return part
+
+    def padded_l1(self) -> torch.Tensor:
+        """|obs|_1 per (e, b, step, i) after window - 1 zero steps, [E, B, W-1+T_obs, N]
+        (computed once for all slices)."""
+        if not self._norms:
+            with torch.no_grad():
+                l1 = torch.linalg.vector_norm(self.obs, 1, -1)
+                pad = l1.new_zeros(*l1.shape[:2], self.window - 1, l1.shape[-1])
+                self._norms.append(torch.cat([pad, l1], dim=2))
+        return self._norms[0]
 
 
 class AgentBlocks(LazyTensor):
     """A central critic's input x [E, B*T', N*block] with block = [the agent's window of
-    observations (W*O), its action one-hot (A), its id one-hot (N)], kept as its parts.
+    observations (W*O), its action one-hot (A), its id one-hot (N)], kept as its parts: the
+    windows (an `ObsWindows`), the actions and A.
 
-    `series` holds every observation once; `block_l1` and `alive_rows` are what the critic's
-    first layer (`learner.networks.block_contributions`) and LRP's per-agent sums
-    (`learner.lrp`) need. Any other torch operation sees the dense tensor (`agent_blocks_dense`,
-    computed once on first use). Built by `agent_blocks`.
+    `block_l1`, `alive_rows` and `action_index` are what the critic's first layer
+    (`learner.networks.block_contributions`) and LRP's per-agent sums (`learner.lrp`) need.
+    Any other torch operation sees the dense tensor (`agent_blocks_dense`, computed once on
+    first use). Built by `agent_blocks`.
+
+    Series index s (0 .. T'+W-2) is observation step hist.start + s - (W-1): window t holds
+    series rows t .. t+W-1.
     """
 
-    def __new__(cls, hist: torch.Tensor, series: torch.Tensor, actions: torch.Tensor, a: int):
+    def __new__(cls, hist: ObsWindows, actions: torch.Tensor, a: int):
         e, b, tp, n, wo = hist.shape
         return super().__new__(cls, (e, b * tp, n * (wo + a + n)), hist)
 
-    def __init__(self, hist: torch.Tensor, series: torch.Tensor, actions: torch.Tensor, a: int):
-        super().__init__(self.shape, hist)
-        self.hist, self.series, self.actions, self.n_actions = hist, series, actions, a
+    def __init__(self, hist: ObsWindows, actions: torch.Tensor, a: int):
+        super().__init__(tuple(self.shape), hist)
+        self.hist, self.actions, self.n_actions = hist, actions, a
         _, self.episodes, self.steps, self.n_agents, wo = hist.shape
-        self.obs_dim = series.shape[-1]
-        self.window = wo // self.obs_dim
+        self.obs_dim, self.window = hist.obs.shape[-1], hist.window
         self.block = wo + a + self.n_agents
         self._rows: tuple | None = None
-        self._l1: torch.Tensor | None = None
 
     def materialise(self) -> torch.Tensor:
         return agent_blocks_dense(self.hist, self.actions, self.n_actions)
 
     def series_l1(self) -> torch.Tensor:
-        """|obs|_1 of every series row, [E, B, T'+W-1, N] (computed once)."""
-        if self._l1 is None:
-            with torch.no_grad():
-                self._l1 = torch.linalg.vector_norm(self.series, 1, -1)
-        return self._l1
+        """|obs|_1 of every series row, [E, B, T'+W-1, N] (zero before the episode start)."""
+        return self.hist.padded_l1()[:, :, self.hist.start : self.hist.start + self.span_rows]
+
+    @property
+    def span_rows(self) -> int:
+        return self.steps + self.window - 1
 
     def block_l1(self) -> torch.Tensor:
         """Σ_j |x_j| over each agent's block, [E, B*T', N]: its window's observations plus 1
@@ -163,30 +189,42 @@ class AgentBlocks(LazyTensor):
         window_l1 = sum(l1[:, :, k : k + tp] for k in range(self.window))
         return (window_l1 + 2.0).reshape(l1.shape[0], -1, self.n_agents)
 
-    def alive_rows(self) -> tuple[torch.Tensor, list[int], list[tuple[torch.Tensor, torch.Tensor]]]:
-        """The non-zero observations, grouped by (member, agent): (rows [K, O], the number of
-        rows of each (e, i) group in e-major order, and per window slot w the pairs (which of
-        the K rows, flat index (e, b, t, i) of the window [E*B*T'*N] it fills slot w of)).
-        An all-zero observation (a dead agent, padding, before the start) adds nothing to any
-        linear map of x, so only these rows are multiplied."""
+    @property
+    def span(self) -> int:
+        """Time rows of the buffers `alive_rows` indexes: every window t = s - w a series row s
+        can fill, t in [-(W-1), T'+W-1), shifted by W-1 to start at 0."""
+        return self.steps + 2 * (self.window - 1)
+
+    def alive_rows(self) -> tuple[torch.Tensor, list[int], torch.Tensor, torch.Tensor]:
+        """The non-zero observations, grouped by (member, agent), and where they go.
+
+        Returns (rows [K, O]; the number of rows of each (e, i) group, e-major; for each row,
+        the flat index of the window its slot 0 fills, t = s, in a buffer [E, B, span, N]
+        (`span`; slot w fills the index minus w*N); the same in a buffer [E, B, span]
+        summed over agents (minus w for slot w)). An all-zero observation (a dead agent,
+        padding, before the episode start) adds nothing to a linear map of x, so only these
+        rows are multiplied."""
         if self._rows is None:
             with torch.no_grad():
                 self._rows = self._find_rows()
         return self._rows
+
+    def action_index(self) -> torch.Tensor:
+        """Each (e, row, i)'s row in the first layer's action weights seen as [E*N*A, H]:
+        (e*N + i)*A + action, [E, B*T', N]."""
+        e, n, a = self.actions.shape[0], self.n_agents, self.n_actions
+        member = torch.arange(e, device=self.actions.device).view(e, 1, 1, 1)
+        agent = torch.arange(n, device=self.actions.device).view(1, 1, 1, n)
+        return ((member * n + agent) * a + self.actions).view(e, -1, n)
 
     def _find_rows(self) -> tuple:
         e, b, _, n = self.series_l1().shape
         idx = (self.series_l1() > 0).permute(0, 3, 1, 2).nonzero()  # sorted by (e, i, b, s)
         ei, ni, bi, si = idx.unbind(1)
         counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
-        rows = self.series[ei, bi, si, ni]
-        slots = []
-        for w in range(self.window):
-            t = si - w
-            ok = ((t >= 0) & (t < self.steps)).nonzero().squeeze(1)
-            flat = ((ei[ok] * b + bi[ok]) * self.steps + t[ok]) * n + ni[ok]
-            slots.append((ok, flat))
-        return rows, counts, slots
+        rows = self.hist.obs[ei, bi, si + self.hist.start - (self.window - 1), ni]
+        window = (ei * b + bi) * self.span + si + self.window - 1
+        return rows, counts, window * n + ni, window
 
 
 def agent_blocks_dense(hist: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
@@ -203,15 +241,15 @@ def agent_blocks_dense(hist: torch.Tensor, actions: torch.Tensor, n_actions: int
 def agent_blocks(
     hist: torch.Tensor, actions: torch.Tensor, n_actions: int, window: int
 ) -> torch.Tensor:
-    """The critic input of `agent_blocks_dense`: lazily as `AgentBlocks` when `hist` is a
-    window view (`obs_history` and its time slices), else dense. Both hold the same values.
+    """The critic input of `agent_blocks_dense`: lazily as `AgentBlocks` when `hist` is an
+    `obs_history` result (or a time slice of one) of this window, else dense. Both hold the
+    same values.
 
     Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
     """
-    series = window_series(hist, window)
-    if series is None:
-        return agent_blocks_dense(hist, actions, n_actions)
-    return AgentBlocks(hist, series, actions, n_actions)
+    if isinstance(hist, ObsWindows) and hist.window == window:
+        return AgentBlocks(hist, actions, n_actions)
+    return agent_blocks_dense(hist, actions, n_actions)
 
 
 def joint_obs(obs: torch.Tensor) -> torch.Tensor:

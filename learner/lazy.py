@@ -60,9 +60,18 @@ class LazyTensor(torch.Tensor):
     def __repr__(self) -> str:  # without computing the values
         return f"{type(self).__name__}(shape={tuple(self.shape)}, dtype={self.dtype})"
 
+    def structured(self, func: Any, args: tuple, kwargs: dict) -> Any:
+        """A subclass's own result for an operation it can do on its parts (e.g. a slice
+        that stays lazy), or NotImplemented to get the dense tensor's."""
+        return NotImplemented
+
     @classmethod
     def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
+        if args and isinstance(args[0], LazyTensor):
+            out = args[0].structured(func, args, kwargs)
+            if out is not NotImplemented:
+                return out
         if func._schema.is_mutable:
             for arg, value in zip(func._schema.arguments, args, strict=False):
                 if isinstance(value, LazyTensor) and arg.is_write:

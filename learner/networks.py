@@ -131,7 +131,7 @@ class MLP(nn.Module):
     def first(self, x: torch.Tensor) -> torch.Tensor:
         """The first layer's pre-activation, [E, M, hidden[0]]."""
         if isinstance(x, AgentBlocks):
-            return block_contributions(self.layers[0], x).sum(2) + self.layers[0].bias
+            return block_preactivation(self.layers[0], x)
         return self.layers[0](x)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -153,34 +153,61 @@ def block_contributions(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
     layer(x) = c.sum(2) + bias (differentiable in the layer's weight).
 
     c_i = Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i], where W_i,w are the rows
-    of agent i's window slot w. Every non-zero observation is multiplied once by all W of its
-    slots' weights ([K, O] x [O, W*H] per member and agent) and added into the windows it
-    sits in; all-zero observations (dead agents, padding) are skipped, as are the zeros of
-    the one-hots (a row lookup). The dense product x @ W does W times as many multiplications
-    per observation, most of them by zero.
+    of agent i's window slot w. Every non-zero observation is multiplied once by the weights
+    of all W slots ([K, O] x [O, W*H] per member and agent) and added into the W windows it
+    sits in; all-zero observations (dead agents, padding) are skipped, and the one-hots are
+    row look-ups. The dense product x @ W multiplies each observation W times, mostly zeros.
     """
     e, m, _ = x.shape
-    n, w, o, a, h = x.n_agents, x.window, x.obs_dim, x.n_actions, layer.out_features
+    n, h = x.n_agents, layer.out_features
+    hist = _window_terms(layer, x, per_agent=True)
+    w_act, w_id = _onehot_weights(layer, x)
+    own_action = F.embedding(x.action_index(), w_act)  # [E, M, N, H]
+    return hist.reshape(e, m, n, h) + own_action + w_id.unsqueeze(1)
+
+
+def block_preactivation(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """layer(x) for an AgentBlocks x, [E, M, H]: `block_contributions` summed over agents as
+    it is built (no per-agent tensor)."""
+    e, m, _ = x.shape
+    h = layer.out_features
+    hist = _window_terms(layer, x, per_agent=False).reshape(e, m, h)
+    w_act, w_id = _onehot_weights(layer, x)
+    actions = F.embedding_bag(x.action_index().view(e * m, -1), w_act, mode="sum")
+    return hist + actions.view(e, m, h) + (w_id.sum(1) + layer.bias.squeeze(1)).unsqueeze(1)
+
+
+def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor, torch.Tensor]:
+    """The action one-hot rows as [E*N*A, H] (`AgentBlocks.action_index` order) and each
+    agent's own id row [E, N, H]."""
+    e, n, a, wo = x.shape[0], x.n_agents, x.n_actions, x.window * x.obs_dim
+    wb = layer.weight.view(e, n, x.block, layer.out_features)
+    w_act = wb[:, :, wo : wo + a].reshape(e * n * a, -1)
+    w_id = torch.diagonal(wb[:, :, wo + a :], dim1=1, dim2=2).transpose(1, 2)
+    return w_act, w_id
+
+
+def _window_terms(layer: EnsembleLinear, x: AgentBlocks, per_agent: bool) -> torch.Tensor:
+    """Σ_w obs_{t-W+1+w, i} W_i,w for every window: [E, B, T', N, H] (per agent) or
+    [E, B, T', H] (summed over agents)."""
+    e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, layer.out_features
     wb = layer.weight.view(e, n, x.block, h)
     w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
-    w_obs = w_obs.reshape(e * n, o, w * h)  # one copy: agent i's [O, W*H] for each member
-    rows, counts, slots = x.alive_rows()
+    w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
+    rows, counts, to_agent, to_sum = x.alive_rows()
     parts = [
         torch.mm(r, wt)
         for r, wt, k in zip(rows.split(counts), w_obs.unbind(0), counts, strict=True)
         if k
     ]
-    proj = torch.cat(parts).view(-1, w, h) if parts else rows.new_zeros(0, w, h)
-    hist = layer.weight.new_zeros(e * x.episodes * x.steps * n, h)
-    for k, (which, flat) in enumerate(slots):
-        hist = hist.index_add(0, flat, proj[which, k])
-    acts = wb[:, :, w * o : w * o + a]  # [E, N, A, H]
-    member = torch.arange(e, device=acts.device).view(e, 1, 1, 1)
-    agent = torch.arange(n, device=acts.device).view(1, 1, 1, n)
-    own_action = acts[member, agent, x.actions]  # [E, B, T', N, H]
-    own_id = torch.diagonal(wb[:, :, w * o + a :], dim1=1, dim2=2).transpose(1, 2)  # [E, N, H]
-    c = hist.view(e, x.episodes, x.steps, n, h) + own_action + own_id.view(e, 1, 1, n, h)
-    return c.view(e, m, n, h)
+    proj = torch.cat(parts) if parts else rows.new_zeros(0, w * h)
+    shape = (e, x.episodes, x.span, n) if per_agent else (e, x.episodes, x.span)
+    step = n if per_agent else 1
+    dest = (to_agent if per_agent else to_sum).unsqueeze(1) - step * torch.arange(
+        w, device=proj.device
+    )
+    buf = proj.new_zeros(math.prod(shape), h).index_add_(0, dest.reshape(-1), proj.view(-1, h))
+    return buf.view(*shape, h)[:, :, w - 1 : w - 1 + x.steps]
 
 
 class QMixer(nn.Module):

@@ -10,10 +10,10 @@ from torch.nn import functional as F
 
 from learner.batch import (
     AgentBlocks,
+    ObsWindows,
     agent_blocks,
     agent_blocks_dense,
     obs_history,
-    window_series,
 )
 from learner.lrp import LRP_RULES, BlockRelevance, agent_relevance, lrp_epsilon
 from learner.networks import MLP
@@ -94,18 +94,19 @@ def _mlp(e: int, d: int, seed: int = 0) -> MLP:
 
 
 @pytest.mark.parametrize("window", [1, 2, 4])
-def test_obs_history_view_holds_the_concatenated_windows(window):
+def test_obs_history_holds_the_concatenated_windows_and_slices_stay_lazy(window):
     obs, _ = _batch()
     hist = obs_history(obs, window)
-    torch.testing.assert_close(hist, reference_obs_history(obs, window), rtol=0, atol=0)
-    for part in (hist[:, :, :-1], hist[:, :, 1:], hist[:, :, 2:5]):
-        series = window_series(part, window)
-        assert series is not None
-        for w in range(window):
-            o = obs.shape[-1]
-            slot = part[..., w * o : (w + 1) * o]
-            torch.testing.assert_close(slot, series[:, :, w : w + part.shape[2]], rtol=0, atol=0)
-    assert window_series(hist.contiguous(), window) is None or window == 1
+    ref = reference_obs_history(obs, window)
+    assert isinstance(hist, ObsWindows) and hist.shape == ref.shape
+    torch.testing.assert_close(hist, ref, rtol=0, atol=0)
+    for sl in (slice(None, -1), slice(1, None), slice(2, 5), slice(-3, None)):
+        part = hist[:, :, sl]
+        assert isinstance(part, ObsWindows)
+        torch.testing.assert_close(part, ref[:, :, sl], rtol=0, atol=0)
+        torch.testing.assert_close(part[:, :, 1:], ref[:, :, sl][:, :, 1:], rtol=0, atol=0)
+    assert type(hist[0]) is torch.Tensor  # any other indexing is dense
+    torch.testing.assert_close(hist[0], ref[0], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("window", [1, 3])
