@@ -6,6 +6,7 @@ S (state), A (actions). Time-indexed inputs have T+1 steps (the last for bootstr
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,17 +62,41 @@ class TensorBatch:
         )
 
 
+_L1: dict[int, tuple] = {}  # id(obs) -> (weakref to obs, its version, its row norms)
+
+
+def obs_l1(obs: torch.Tensor) -> torch.Tensor:
+    """|obs|_1 of every observation, [E, B, T', N] (the agents' and RDN's critic's inputs both
+    skip all-zero observations; computed once per observation tensor while it is unchanged)."""
+    key = id(obs)
+    hit = _L1.get(key)
+    if hit is not None and hit[0]() is obs and hit[1] == obs._version:
+        return hit[2]
+    with torch.no_grad():
+        norms = torch.linalg.vector_norm(obs, 1, -1)
+    _L1[key] = (weakref.ref(obs, lambda _: _L1.pop(key, None)), obs._version, norms)
+    return norms
+
+
 def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
     """Per-agent network inputs for every step: own obs, last action one-hot, id one-hot.
 
+    Returned as `AgentInputs` (the values are computed only when an operation needs them;
+    `learner.networks.unroll` projects the parts instead).
+
     Args:
         obs: [E, B, T', N, O] observations (T' steps).
-        actions: [E, B, T, N] actions taken; the last action at step 0 is zeros, and steps
-            past T use the last recorded action.
+        actions: [E, B, T, N] actions taken; the last action at step 0 is zeros, and so is
+            it at steps past T + 1.
         n_actions: A.
     Returns:
         [E, B, T', N, O + A + N].
     """
+    return AgentInputs(obs, actions, n_actions)
+
+
+def agent_inputs_dense(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """`agent_inputs` as one dense tensor."""
     e, b, tp, n, _ = obs.shape
     last = torch.zeros(e, b, tp, n, n_actions, device=obs.device)
     k = min(tp - 1, actions.shape[2])
@@ -79,6 +104,55 @@ def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> to
         last[:, :, 1 : k + 1] = F.one_hot(actions[:, :, :k], n_actions).float()
     ids = torch.eye(n, device=obs.device).expand(e, b, tp, n, n)
     return torch.cat([obs, last, ids], dim=-1)
+
+
+class AgentInputs(LazyTensor):
+    """The agent network's inputs [E, B, T', N, O + A + N] kept as obs [E, B, T', N, O] and
+    actions [E, B, T, N] (`agent_inputs`); `rows` and `last_action_index` are what a
+    first layer needs to project them without building them (`networks.input_projection`)."""
+
+    def __new__(cls, obs: torch.Tensor, actions: torch.Tensor, a: int):
+        e, b, tp, n, o = obs.shape
+        return super().__new__(cls, (e, b, tp, n, o + a + n), obs)
+
+    def __init__(self, obs: torch.Tensor, actions: torch.Tensor, a: int):
+        super().__init__(tuple(self.shape), obs)
+        self.obs, self.actions, self.n_actions = obs, actions, a
+        self._rows: dict[bool, tuple] = {}
+
+    def materialise(self) -> torch.Tensor:
+        return agent_inputs_dense(self.obs, self.actions, self.n_actions)
+
+    def rows(self, time_major: bool) -> tuple[torch.Tensor, list[int], torch.Tensor]:
+        """The non-zero observations (all-zero ones, dead agents and padding, add nothing to
+        a linear map): (rows [K, O] grouped by member, each member's count, each row's flat
+        index in [E, T', B, N] (time_major) or [E, B, T', N])."""
+        if time_major not in self._rows:
+            with torch.no_grad():
+                alive = obs_l1(self.obs) > 0  # [E, B, T', N]
+                alive = alive.transpose(1, 2) if time_major else alive
+                idx = alive.nonzero()  # sorted by member
+                counts = torch.bincount(idx[:, 0], minlength=alive.shape[0]).tolist()
+                ei, i1, i2, ni = idx.unbind(1)
+                bi, ti = (i2, i1) if time_major else (i1, i2)
+                rows = self.obs[ei, bi, ti, ni]
+                _, d1, d2, n = alive.shape
+                self._rows[time_major] = (rows, counts, ((ei * d1 + i1) * d2 + i2) * n + ni)
+        return self._rows[time_major]
+
+    def onehot_index(self, time_major: bool) -> torch.Tensor:
+        """Each input's row in a table [E*N*(A+1), .] of (member, agent, last action or "none"
+        = A): (e*N + i)*(A+1) + the previous action, [E, T', B, N] or [E, B, T', N]."""
+        e, b, tp, n, _ = self.obs.shape
+        a = self.n_actions
+        idx = torch.full((e, b, tp, n), a, dtype=torch.long, device=self.obs.device)
+        k = min(tp - 1, self.actions.shape[2])
+        if k > 0:
+            idx[:, :, 1 : k + 1] = self.actions[:, :, :k]
+        member = torch.arange(e, device=idx.device).view(e, 1, 1, 1)
+        agent = torch.arange(n, device=idx.device).view(1, 1, 1, n)
+        idx = (member * n + agent) * (a + 1) + idx
+        return idx.transpose(1, 2) if time_major else idx
 
 
 def obs_history(obs: torch.Tensor, window: int) -> torch.Tensor:
@@ -139,7 +213,7 @@ class ObsWindows(LazyTensor):
         (computed once for all slices)."""
         if not self._norms:
             with torch.no_grad():
-                l1 = torch.linalg.vector_norm(self.obs, 1, -1)
+                l1 = obs_l1(self.obs)
                 pad = l1.new_zeros(*l1.shape[:2], self.window - 1, l1.shape[-1])
                 self._norms.append(torch.cat([pad, l1], dim=2))
         return self._norms[0]

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from learner.batch import AgentBlocks
+from learner.batch import AgentBlocks, AgentInputs
 
 
 class EnsembleLinear(nn.Module):
@@ -255,17 +255,24 @@ def clip_grad_norm_per_member(params: list[nn.Parameter], max_norm: float) -> to
 
 def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
     """Run the agent over whole episodes: recurrent from a zero hidden state, step by step;
-    feed-forward in one call over every step.
+    feed-forward in one call over every step. `AgentInputs` (what `agent_inputs` returns)
+    are projected by `input_projection` without being built.
 
     Shapes: inputs [E, B, T', N, D] -> outputs [E, B, T', N, A].
     """
     e, b, tp, n, d = inputs.shape
     if not agent.recurrent:
-        out = agent.head(F.relu(agent.inp(inputs.reshape(e, b * tp * n, d))))
-        return out.view(e, b, tp, n, -1)
+        if isinstance(inputs, AgentInputs):
+            first = input_projection(agent.inp, inputs, time_major=False)
+        else:
+            first = agent.inp(inputs.reshape(e, b * tp * n, d))
+        return agent.head(F.relu(first.reshape(e, b * tp * n, -1))).view(e, b, tp, n, -1)
     # The input projection and the layers after the GRU act on every step at once; only the
     # recurrence itself runs step by step (same arithmetic as calling the agent per step).
-    gi = agent.gru.ih(inputs.transpose(1, 2).reshape(e, tp * b * n, d)).view(e, tp, b * n, -1)
+    if isinstance(inputs, AgentInputs):
+        gi = input_projection(agent.gru.ih, inputs, time_major=True).view(e, tp, b * n, -1)
+    else:
+        gi = agent.gru.ih(inputs.transpose(1, 2).reshape(e, tp * b * n, d)).view(e, tp, b * n, -1)
     h = agent.init_hidden(e, b * n)
     hs = []
     for g in gi.unbind(1):  # unbind, not gi[:, t]: one gradient stack, not one per step
@@ -273,6 +280,24 @@ def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
         hs.append(h)
     out = agent.head(torch.stack(hs, dim=1).view(e, tp * b * n, -1))
     return out.view(e, tp, b, n, -1).transpose(1, 2)
+
+
+def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) -> torch.Tensor:
+    """layer(x) for AgentInputs x, [E, T', B, N, H] (time_major) or [E, B, T', N, H]: the
+    non-zero observations times the observation rows (one product per member), plus one
+    look-up per input in a table of (agent id row + last action row + bias). Differentiable
+    in the layer."""
+    e, _, _, n, o = x.obs.shape
+    a, h = x.n_actions, layer.out_features
+    w_obs, w_act, w_id = layer.weight.split([o, a, n], dim=1)
+    w_last = torch.cat([w_act, w_act.new_zeros(e, 1, h)], dim=1)  # row A: no last action
+    table = w_last.unsqueeze(1) + (w_id + layer.bias).unsqueeze(2)  # [E, N, A+1, H]
+    out = F.embedding(x.onehot_index(time_major), table.reshape(-1, h))
+    rows, counts, flat = x.rows(time_major)
+    parts = [torch.mm(r, w) for r, w, k in zip(rows.split(counts), w_obs, counts, strict=True) if k]
+    if parts:
+        out.view(-1, h).index_add_(0, flat, torch.cat(parts))
+    return out
 
 
 @dataclass(frozen=True)

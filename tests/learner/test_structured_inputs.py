@@ -1,8 +1,10 @@
-"""RDN's structured critic input (`AgentBlocks`, `block_contributions`, LRP's per-agent sums)
-computes what the straightforward dense implementation computes.
+"""The structured network inputs (the agents' `AgentInputs`, RDN's `ObsWindows` and
+`AgentBlocks`, `block_contributions`, LRP's per-agent sums) compute what the straightforward
+dense implementation computes.
 
-The straightforward versions are kept here, as they were before the optimisation: windows by
-concatenation, the critic input by concatenating one-hots, LRP-ε over the dense input."""
+The straightforward versions are kept here, as they were before the optimisation: agent
+inputs and windows by concatenation, the critic input by concatenating one-hots, LRP-ε over
+the dense input, the unroll over the dense inputs."""
 
 import pytest
 import torch
@@ -10,13 +12,36 @@ from torch.nn import functional as F
 
 from learner.batch import (
     AgentBlocks,
+    AgentInputs,
     ObsWindows,
     agent_blocks,
     agent_blocks_dense,
+    agent_inputs,
     obs_history,
 )
 from learner.lrp import LRP_RULES, BlockRelevance, agent_relevance, lrp_epsilon
-from learner.networks import MLP
+from learner.networks import MLP, AgentNet, unroll
+
+
+def reference_agent_inputs(obs: torch.Tensor, actions: torch.Tensor, a: int) -> torch.Tensor:
+    e, b, tp, n, _ = obs.shape
+    last = torch.zeros(e, b, tp, n, a)
+    k = min(tp - 1, actions.shape[2])
+    if k > 0:
+        last[:, :, 1 : k + 1] = F.one_hot(actions[:, :, :k], a).float()
+    ids = torch.eye(n).expand(e, b, tp, n, n)
+    return torch.cat([obs, last, ids], dim=-1)
+
+
+def reference_unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
+    """The agent called step by step on the dense inputs."""
+    e, b, tp, n, d = inputs.shape
+    h = agent.init_hidden(e, b * n)
+    outs = []
+    for t in range(tp):
+        q, h = agent(inputs[:, :, t].reshape(e, b * n, d), h)
+        outs.append(q.view(e, b, n, -1))
+    return torch.stack(outs, dim=2)
 
 
 def reference_obs_history(obs: torch.Tensor, window: int) -> torch.Tensor:
@@ -175,6 +200,8 @@ def _reference_learner(learner, monkeypatch) -> None:
     import learner.rdn as rdn
 
     monkeypatch.setattr(rdn, "obs_history", reference_obs_history)
+    monkeypatch.setattr(rdn, "agent_inputs", reference_agent_inputs)
+    monkeypatch.setattr(rdn, "unroll", reference_unroll)
     monkeypatch.setattr(rdn, "lrp_epsilon", reference_lrp)
     a = learner.info.n_actions
     monkeypatch.setattr(
@@ -220,3 +247,34 @@ def test_rdn_updates_match_the_straightforward_implementation(rule, monkeypatch)
         _close(pf, ps, 1e-4)
     for pf, ps in zip(fast.agent.parameters(), slow.agent.parameters(), strict=True):
         _close(pf, ps, 1e-4)
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_unroll_of_agent_inputs_matches_the_dense_inputs(recurrent):
+    obs, actions = _batch(4)
+    a = 4
+    x = agent_inputs(obs, actions[:, :, :-1], a)
+    dense = reference_agent_inputs(obs, actions[:, :, :-1], a)
+    assert isinstance(x, AgentInputs)
+    torch.testing.assert_close(x, dense, rtol=0, atol=0)
+    torch.manual_seed(0)
+    agent = AgentNet(2, dense.shape[-1], a, hidden=8, fc=6, recurrent=recurrent)
+    with torch.no_grad():
+        for p in agent.parameters():
+            p.normal_(0.0, 0.5)
+    q, q_ref = unroll(agent, x), reference_unroll(agent, dense)
+    _close(q, q_ref)
+    grads = torch.autograd.grad(q.pow(2).sum(), list(agent.parameters()))
+    grads_ref = torch.autograd.grad(q_ref.pow(2).sum(), list(agent.parameters()))
+    for g, g_ref in zip(grads, grads_ref, strict=True):
+        _close(g, g_ref)
+
+
+def test_obs_norms_are_shared_until_the_observations_change():
+    from learner.batch import obs_l1
+
+    obs, _ = _batch()
+    first = obs_l1(obs)
+    assert obs_l1(obs) is first
+    obs[0, 0, 0, 0, 0] += 1.0
+    torch.testing.assert_close(obs_l1(obs), obs.abs().sum(-1))
