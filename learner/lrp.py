@@ -38,6 +38,12 @@ LrpRule = Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"]
 LRP_RULES: tuple[str, ...] = ("eps_residual", "eps", "eps_nobias", "grad_x_input")
 
 
+def _share(weight: torch.Tensor) -> torch.Tensor:
+    """Each entry's fraction of its row's total (last axis), zero for an all-zero row."""
+    total = weight.sum(-1, keepdim=True)
+    return torch.where(total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight))
+
+
 def _stabilise(z: torch.Tensor, eps: float) -> torch.Tensor:
     return z + eps * torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
 
@@ -77,10 +83,7 @@ def lrp_epsilon(
         if rule == "eps_residual":
             residual = out - relevance.sum(-1)
             weight = x.abs()
-            total = weight.sum(-1, keepdim=True)
-            share = torch.where(
-                total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight)
-            )
+            share = _share(weight)
             relevance = relevance + residual.unsqueeze(-1) * share
     return relevance, out
 
@@ -109,10 +112,7 @@ class BlockRelevance(LazyTensor):
         relevance = x * torch.bmm(self.s1, self.w1.transpose(1, 2))
         if self.residual is not None:
             weight = x.abs()
-            total = weight.sum(-1, keepdim=True)
-            share = torch.where(
-                total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight)
-            )
+            share = _share(weight)
             relevance = relevance + self.residual.unsqueeze(-1) * share
         return relevance
 
@@ -157,10 +157,7 @@ def _lrp_blocks(
         if rule == "eps_residual":
             residual = out - per_agent.sum(-1)
             weight = x.block_l1()
-            total = weight.sum(-1, keepdim=True)
-            share = torch.where(
-                total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight)
-            )
+            share = _share(weight)
             per_agent = per_agent + residual.unsqueeze(-1) * share
     w1 = first.weight.detach().clone()  # the critic may be updated before the values are used
     return BlockRelevance(x, per_agent, s1, w1, residual), out
