@@ -19,10 +19,9 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
-from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_inputs, masked_mean, obs_history
+from learner.batch import TensorBatch, agent_blocks, agent_inputs, masked_mean, obs_history
 from learner.common import (
     AgentConfig,
     AgentCriticLearner,
@@ -175,14 +174,13 @@ class RDNLearner(AgentCriticLearner):
         return True
 
     def critic_inputs(self, hist: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Per-agent blocks [history, action one-hot, id one-hot] laid end to end.
+        """Per-agent blocks [history, action one-hot, id one-hot] laid end to end
+        (`learner.batch.agent_blocks`: kept as its parts when hist is a window view, so the
+        critic and LRP multiply each observation once; dense otherwise, the same values).
 
         Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
         """
-        e, b, tp, n, _ = hist.shape
-        ids = torch.eye(n, device=hist.device).expand(e, b, tp, n, n)
-        x = torch.cat([hist, F.one_hot(actions, self.info.n_actions).float(), ids], dim=-1)
-        return x.reshape(e, b * tp, n * self.block)
+        return agent_blocks(hist, actions, self.info.n_actions, self.cfg.obs_window)
 
     def _next_value(
         self, hist_next: torch.Tensor, qs_next: torch.Tensor, avail_next: torch.Tensor

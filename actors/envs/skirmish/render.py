@@ -54,8 +54,12 @@ def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
     return {**statics(venv, m), **dynamics(venv, m)}
 
 
-def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:
-    """An RGB image [H, W, 3] (uint8) of a `snapshot`."""
+def draw_frame(
+    snap: dict[str, Any], title: str, tint: dict[int, Any] | None = None, note: str = ""
+) -> np.ndarray:
+    """An RGB image [H, W, 3] (uint8) of a `snapshot`; `tint` maps unit indices to colours
+    that replace their team colour (e.g. each agent's share of the credit), `note` is a
+    line of text under the legend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -78,6 +82,8 @@ def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:
             ax.plot(x, y, "x", color="0.7", ms=3)
             continue
         color = "tab:blue" if team[u] == 0 else "tab:red"
+        if tint and u in tint:
+            color = tint[u]
         size = 4 + 8 * s["radius"][u]
         ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
         frac = s["hp"][u] / s["hp_max"][u]
@@ -89,6 +95,8 @@ def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:
         ax.plot([], [], MARKERS.get(n, "o"), color="0.4", label=n)[0] for n in sorted(set(names))
     ]
     ax.legend(handles=handles, loc="lower left", fontsize=6, framealpha=0.6)
+    if note:
+        ax.text(0.01, 0.99, note, transform=ax.transAxes, fontsize=6, va="top")
     fig.canvas.draw()
     img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
