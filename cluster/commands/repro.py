@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--t-max",
         type=int,
         default=None,
-        help="env steps per run (default: configs/envs/matrix.yaml)",
+        help="env steps per run (default: cluster/configs/envs/matrix.yaml)",
     )
     _add_run_options(m)
     m.set_defaults(func=cmd_matrix)
