@@ -12,6 +12,7 @@ import functools
 import logging
 from pathlib import Path
 
+from cluster.commands import add_command
 from cluster.config import ConfigError, build
 from cluster.dashboard.server import (
     DashboardConfig,
@@ -29,7 +30,11 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("dashboard", help="serve the live metrics dashboard on localhost")
+    p = add_command(
+        sub,
+        "dashboard",
+        "Serve the live metrics dashboard on 127.0.0.1 and print its URL; writes nothing.",
+    )
     src = p.add_mutually_exclusive_group()
     src.add_argument("--prometheus", metavar="URL", help="read this Prometheus (HTTP API)")
     src.add_argument("--targets", metavar="HOST:PORT,...", help="scrape these exporters")

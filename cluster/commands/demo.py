@@ -12,7 +12,7 @@ import functools
 import logging
 from pathlib import Path
 
-from cluster.commands import train
+from cluster.commands import add_command, train
 from cluster.dashboard.server import DashboardConfig, DashboardServer, ExporterSource
 from cluster.metrics import read_file_sd
 
@@ -20,7 +20,13 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="RDN on skirmish/3m with the local multi-process cluster")
+    p = add_command(
+        sub,
+        "demo",
+        "Train RDN on skirmish/3m with the local multi-process cluster while the live "
+        "dashboard shows it; writes OUT/config.yaml, metrics.jsonl, summary.json, "
+        "checkpoint/ and buffer/.",
+    )
     p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     p.add_argument("--env", default="skirmish/3m", help="env id (default skirmish/3m)")
     p.add_argument("--actors", type=int, default=2, help="rollout actors (default 2)")

@@ -14,6 +14,7 @@ from types import ModuleType
 
 from cluster import repro_curves, repro_emcac, repro_matrix, repro_smac
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.run_config import load_train_config
 from cluster.trainer import Progress, write_json
 from learner.registry import ALGOS
@@ -22,9 +23,19 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("repro", help="reproduce the seed's experiments")
+    p = add_command(
+        sub,
+        "repro",
+        "Reproduce the seed's experiments; each writes summary.json, its curves and PNG "
+        "plots under --out.",
+    )
     rsub = p.add_subparsers(dest="repro_command", required=True, metavar="EXPERIMENT")
-    m = rsub.add_parser("matrix", help="seed Fig. 5.3: every algorithm on both matrix games")
+    m = add_command(
+        rsub,
+        "matrix",
+        "Seed Fig. 5.3: train every algorithm on both matrix games; writes "
+        "OUT/summary.json and the plots.",
+    )
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
     m.add_argument(
@@ -60,14 +71,16 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
     _register_curves(
         rsub,
         "emcac",
-        "seed Table 5.2: CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps",
+        "Seed Table 5.2: train CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps; writes "
+        "OUT/evals/*.jsonl as it runs, then summary.json, curves.json and one PNG per map.",
         repro_emcac,
         default_seeds=8,
     )
     _register_curves(
         rsub,
         "smac",
-        "IQL, VDN, QMIX, QMIX-nostate and RDN on SMAC-like maps (skirmish or real SMAC)",
+        "Train IQL, VDN, QMIX, QMIX-nostate and RDN on SMAC-like maps (skirmish or real SMAC); "
+        "writes OUT/evals/*.jsonl as it runs, then summary.json, curves.json and one PNG per map.",
         repro_smac,
         default_seeds=3,
     )
@@ -80,7 +93,7 @@ def _register_curves(
     experiment: ModuleType,
     default_seeds: int,
 ) -> None:
-    m = rsub.add_parser(name, help=help_text)
+    m = add_command(rsub, name, help_text)
     m.add_argument(
         "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
     )
