@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         rsub,
         "matrix",
         "Seed Fig. 5.3: train every algorithm on both matrix games; writes "
-        "OUT/summary.json and the plots.",
+        "OUT/summary.json, curves.json and matrix_<game>.png.",
     )
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
