@@ -7,7 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
-from typing import Any
+from typing import Any, Literal
+
+import torch
 
 from actors.envs.base import EnvError
 from actors.envs.registry import get_spec
@@ -92,7 +94,14 @@ class RunConfig:
         test_interval: env steps between greedy evaluations.
         test_episodes: greedy episodes per evaluation.
         save_interval: env steps between checkpoints (0: only at the end).
-        device: torch device of the learner.
+        device: torch device of the learner ("cpu", "cuda", "cuda:1", ...). Rollout and
+            evaluation workers always act on the CPU.
+        acting_weights: what the learner process's own workers (local-mode rollouts, greedy
+            evaluation) act with: "shared", the learner's agent module itself (CPU learners
+            only); "copy", a CPU copy of it, refreshed from `learner.get_weights()` whenever
+            the learner's version has moved on (what a cuda learner needs; on the CPU it acts
+            exactly as "shared" does); "auto", shared on the CPU, a copy otherwise. Ray
+            rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
     """
@@ -104,9 +113,19 @@ class RunConfig:
     test_episodes: int = 20
     save_interval: int = 0
     device: str = "cpu"
+    acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
 
     def validate(self) -> None:
+        try:
+            device = torch.device(self.device)
+        except RuntimeError as e:
+            raise ValueError(f"device {self.device!r} is not a torch device ({e})") from None
+        if self.acting_weights == "shared" and device.type != "cpu":
+            raise ValueError(
+                f"acting_weights=shared needs device=cpu (workers act on CPU tensors), got "
+                f"device={self.device!r}; use acting_weights=copy or auto"
+            )
         for name in ("t_max", "num_envs", "test_interval", "test_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

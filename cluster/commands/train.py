@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.config import ConfigError
 from cluster.run_config import TrainConfig, default_files, load_train_config
 from cluster.trainer import EvalRecord, LocalTrainer, write_json
@@ -44,7 +45,13 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train one algorithm on one env")
+    p = add_command(
+        sub,
+        "train",
+        "Train one algorithm on one env; writes OUT/config.yaml, metrics.jsonl, "
+        "summary.json and checkpoint/ (cluster mode adds buffer/, cluster.json and "
+        "targets.json).",
+    )
     add_run_arguments(p)
     p.add_argument("--seed", type=int, help="random seed (run.seed)")
     p.add_argument("--t-max", type=int, help="env steps to train (run.t_max)")
