@@ -16,6 +16,7 @@ import numpy as np
 from actors.envs.registry import make_vec_env
 from actors.envs.skirmish.env import SkirmishVecEnv
 from actors.envs.skirmish.scripts import POLICIES
+from actors.rollout import RolloutWorker
 
 log = logging.getLogger(__name__)
 MARKERS = {
@@ -153,3 +154,47 @@ def render_episode(
             break
     out = write_images(frames, out)
     return {"out": str(out), "frames": len(frames), "battle_won": won, "steps": t, "return": ret}
+
+
+def render_policy_episode(
+    worker: RolloutWorker, out: str | Path, title: str, tries: int = 10
+) -> dict[str, Any]:
+    """Play greedy episodes with `worker`'s policy until one is won (at most `tries`) and
+    write that one, or the last if none was won, to `out`.
+
+    Args:
+        worker: a RolloutWorker over one skirmish env (num_envs 1), holding the policy.
+        out: `.gif` for an animation, anything else for a strip of frames.
+        title: shown above every frame, before the step and the return so far.
+        tries: episodes played at most.
+
+    Returns:
+        {"out", "frames", "battle_won", "steps", "return", "episodes_played"}.
+    """
+    venv = worker.venv
+    if not isinstance(venv, SkirmishVecEnv) or venv.num_envs != 1:
+        raise ValueError("render_policy_episode needs a worker over one skirmish env")
+    snaps: list[dict[str, Any]] = []  # the battle after the reset and after every step
+    played = 0
+    while played < tries:
+        played += 1
+        snaps.clear()
+        result = worker.run_round(greedy=True, on_step=lambda: snaps.append(snapshot(venv)))
+        if result.won[0]:
+            break
+    won = bool(result.won[0])
+    returns = np.concatenate([[0.0], np.cumsum(result.episodes[0].reward)])
+    frames = [
+        draw_frame(snap, f"{title}  t={t}  return={returns[t]:.1f}") for t, snap in enumerate(snaps)
+    ]
+    frames += [draw_frame(snaps[-1], f"{title}  {'won' if won else 'lost'}")] * 4  # a pause
+    out = write_images(frames, out)
+    steps = len(snaps) - 1
+    return {
+        "out": str(out),
+        "frames": len(frames),
+        "battle_won": won,
+        "steps": steps,
+        "return": float(returns[-1]),
+        "episodes_played": played,
+    }
