@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument(
         "--sd-file",
         default="",
-        help="file_sd JSON listing the exporters (default ~/.credit/metrics/targets.json)",
+        help="a file_sd JSON file (or a glob of them) to scrape instead of every live run "
+        "(default: each cluster run's OUT/targets.json, linked in ~/.credit/metrics/runs/)",
     )
     up.add_argument("--port", type=int, default=9090, help="HTTP port; 0 picks a free one")
     up.add_argument("--data-dir", default="", help="TSDB folder (default <state-dir>/data)")
@@ -69,7 +70,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         },
     )
     state = prom.start(cfg)
-    print(f"prometheus ready at {state.url} (pid {state.pid}); scraping {cfg.resolved().sd_file}")
+    sd = cfg.resolved().sd_file
+    what = f"every live run ({sd})" if not args.sd_file else sd
+    print(f"prometheus ready at {state.url} (pid {state.pid}); scraping {what}")
     print(f"log: {state.log_file}; stop with: credit metrics down")
     return 0
 
