@@ -61,7 +61,7 @@ class Progress:
     """A one-line progress bar on a terminal, log lines otherwise (at most one per `every_s`),
     each with the env steps per second since the previous line."""
 
-    def __init__(self, total: int, every_s: float = 10.0):
+    def __init__(self, total: int, every_s: float = 5.0):
         self.total, self.every_s = total, every_s
         self.tty = sys.stderr.isatty()
         self.last = 0.0
