@@ -24,12 +24,12 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_the_report_evaluates_the_saved_policy_and_writes_curve_and_gif(tmp_path, capsys):
     out = tmp_path / "run"
-    argv = ["train", "--algo", "qmix", "--env", "skirmish/3m", "--t-max", "400", "--out", str(out)]
-    argv += ["--set", "run.num_envs=2", "--set", "run.test_interval=200"]
+    argv = ["train", "--algo", "qmix", "--env", "skirmish/3m", "--t-max", "200", "--out", str(out)]
+    argv += ["--set", "run.num_envs=2", "--set", "run.test_interval=100"]
     argv += ["--set", "run.test_episodes=2", "--set", "replay.batch_size=4"]
     assert main(argv) == 0
-    report = write_report(out, episodes=6, gif_tries=1)
-    assert report.episodes == 6 and 0.0 <= report.win_rate <= 1.0
+    report = write_report(out, episodes=4, gif_tries=1)
+    assert report.episodes == 4 and 0.0 <= report.win_rate <= 1.0
     assert report.t_env == json.loads((out / "summary.json").read_text())["t_env"]
     assert report.curve_png == out / "learning_curve.png"
     with Image.open(report.curve_png) as png:
