@@ -292,10 +292,10 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     assert after.strip() == "after 1", "cluster down stopped another run's Ray instance"
 
 
-@pytest.mark.parametrize(
-    "actors, num_envs",
-    [pytest.param(1, 1, marks=pytest.mark.slow), (2, 4)],  # 1 x 1: `make test-slow` (36 s)
-)
+# slow (45-80 s a case on the shared 2-core box): both cases run in `make test-slow`; the
+# learner's schedule is tested in one process by tests/learner/test_schedule.py.
+@pytest.mark.slow
+@pytest.mark.parametrize("actors, num_envs", [(1, 1), (2, 4)])
 def test_updates_and_target_refreshes_per_episode_do_not_depend_on_actors(
     tmp_path, env, actors, num_envs
 ):
