@@ -15,6 +15,7 @@ from cluster.commands import cluster as cluster_cmd
 from cluster.commands import dashboard as dashboard_cmd
 from cluster.commands import demo as demo_cmd
 from cluster.commands import env as env_cmd
+from cluster.commands import inspect as inspect_cmd
 from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
@@ -38,6 +39,7 @@ COMMANDS = [
     train_cmd,
     repro_cmd,
     env_cmd,
+    inspect_cmd,
     bench_cmd,
     buffer_cmd,
     cluster_cmd,

@@ -69,9 +69,17 @@ class Curve:
 
 
 def run_pair(
-    algo: str, env: str, seeds: int, overrides: list[str], threads: int, log_dir: Path | None
+    algo: str,
+    env: str,
+    seeds: int,
+    overrides: list[str],
+    threads: int,
+    log_dir: Path | None,
+    checkpoint_dir: Path | None = None,
 ) -> Curve:
-    """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer."""
+    """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer; with
+    `checkpoint_dir`, save its checkpoint (every seed, `credit train`'s format) to
+    checkpoint_dir/<env>__<algo>/ at the end."""
     import torch
 
     from cluster.run_config import load_train_config
@@ -111,6 +119,8 @@ def run_pair(
     trainer.train(on_eval=on_eval)
     if not curve.t_env or curve.t_env[-1] != trainer.core.t_env:
         on_eval(trainer.core.evaluate())
+    if checkpoint_dir is not None:
+        trainer.save(checkpoint_dir / f"{env.replace('/', '-')}__{algo}")
     return Curve(
         algo,
         env,
@@ -269,13 +279,15 @@ def run(
     overrides: list[str],
     workers: int,
     log_dir: Path | None = None,
+    checkpoint_dir: Path | None = None,
 ) -> list[Curve]:
     """Every (algo, env) pair, `workers` at a time; curves in (env, algo) order."""
     jobs = [(a, g) for g in envs for a in algos]
+    args = (seeds, overrides, 1, log_dir, checkpoint_dir)
     if workers <= 1:
-        return [run_pair(a, g, seeds, overrides, 1, log_dir) for a, g in jobs]
+        return [run_pair(a, g, *args) for a, g in jobs]
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(run_pair, a, g, seeds, overrides, 1, log_dir) for a, g in jobs]
+        futures = [pool.submit(run_pair, a, g, *args) for a, g in jobs]
         curves = []
         for (a, g), f in zip(jobs, futures, strict=True):
             curves.append(f.result())

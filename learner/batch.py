@@ -6,12 +6,15 @@ S (state), A (actions). Time-indexed inputs have T+1 steps (the last for bootstr
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch
+from learner.lazy import LazyTensor
 
 
 @dataclass(frozen=True)
@@ -59,17 +62,41 @@ class TensorBatch:
         )
 
 
+_L1: dict[int, tuple] = {}  # id(obs) -> (weakref to obs, its version, its row norms)
+
+
+def obs_l1(obs: torch.Tensor) -> torch.Tensor:
+    """|obs|_1 of every observation, [E, B, T', N] (the agents' and RDN's critic's inputs both
+    skip all-zero observations; computed once per observation tensor while it is unchanged)."""
+    key = id(obs)
+    hit = _L1.get(key)
+    if hit is not None and hit[0]() is obs and hit[1] == obs._version:
+        return hit[2]
+    with torch.no_grad():
+        norms = torch.linalg.vector_norm(obs, 1, -1)
+    _L1[key] = (weakref.ref(obs, lambda _: _L1.pop(key, None)), obs._version, norms)
+    return norms
+
+
 def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
     """Per-agent network inputs for every step: own obs, last action one-hot, id one-hot.
 
+    Returned as `AgentInputs` (the values are computed only when an operation needs them;
+    `learner.networks.unroll` projects the parts instead).
+
     Args:
         obs: [E, B, T', N, O] observations (T' steps).
-        actions: [E, B, T, N] actions taken; the last action at step 0 is zeros, and steps
-            past T use the last recorded action.
+        actions: [E, B, T, N] actions taken; the last action at step 0 is zeros, and so is
+            it at steps past T + 1.
         n_actions: A.
     Returns:
         [E, B, T', N, O + A + N].
     """
+    return AgentInputs(obs, actions, n_actions)
+
+
+def agent_inputs_dense(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """`agent_inputs` as one dense tensor."""
     e, b, tp, n, _ = obs.shape
     last = torch.zeros(e, b, tp, n, n_actions, device=obs.device)
     k = min(tp - 1, actions.shape[2])
@@ -79,18 +106,224 @@ def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> to
     return torch.cat([obs, last, ids], dim=-1)
 
 
+class AgentInputs(LazyTensor):
+    """The agent network's inputs [E, B, T', N, O + A + N] kept as obs [E, B, T', N, O] and
+    actions [E, B, T, N] (`agent_inputs`); `rows` and `last_action_index` are what a
+    first layer needs to project them without building them (`networks.input_projection`)."""
+
+    def __new__(cls, obs: torch.Tensor, actions: torch.Tensor, a: int):
+        e, b, tp, n, o = obs.shape
+        return super().__new__(cls, (e, b, tp, n, o + a + n), obs)
+
+    def __init__(self, obs: torch.Tensor, actions: torch.Tensor, a: int):
+        super().__init__(tuple(self.shape), obs)
+        self.obs, self.actions, self.n_actions = obs, actions, a
+        self._rows: dict[bool, tuple] = {}
+
+    def materialise(self) -> torch.Tensor:
+        return agent_inputs_dense(self.obs, self.actions, self.n_actions)
+
+    def rows(self, time_major: bool) -> tuple[torch.Tensor, list[int], torch.Tensor]:
+        """The non-zero observations (all-zero ones, dead agents and padding, add nothing to
+        a linear map): (rows [K, O] grouped by member, each member's count, each row's flat
+        index in [E, T', B, N] (time_major) or [E, B, T', N])."""
+        if time_major not in self._rows:
+            with torch.no_grad():
+                alive = obs_l1(self.obs) > 0  # [E, B, T', N]
+                alive = alive.transpose(1, 2) if time_major else alive
+                idx = alive.nonzero()  # sorted by member
+                counts = torch.bincount(idx[:, 0], minlength=alive.shape[0]).tolist()
+                ei, i1, i2, ni = idx.unbind(1)
+                bi, ti = (i2, i1) if time_major else (i1, i2)
+                rows = self.obs[ei, bi, ti, ni]
+                _, d1, d2, n = alive.shape
+                self._rows[time_major] = (rows, counts, ((ei * d1 + i1) * d2 + i2) * n + ni)
+        return self._rows[time_major]
+
+    def onehot_index(self, time_major: bool) -> torch.Tensor:
+        """Each input's row in a table [E*N*(A+1), .] of (member, agent, last action or "none"
+        = A): (e*N + i)*(A+1) + the previous action, [E, T', B, N] or [E, B, T', N]."""
+        e, b, tp, n, _ = self.obs.shape
+        a = self.n_actions
+        idx = torch.full((e, b, tp, n), a, dtype=torch.long, device=self.obs.device)
+        k = min(tp - 1, self.actions.shape[2])
+        if k > 0:
+            idx[:, :, 1 : k + 1] = self.actions[:, :, :k]
+        member = torch.arange(e, device=idx.device).view(e, 1, 1, 1)
+        agent = torch.arange(n, device=idx.device).view(1, 1, 1, n)
+        idx = (member * n + agent) * (a + 1) + idx
+        return idx.transpose(1, 2) if time_major else idx
+
+
 def obs_history(obs: torch.Tensor, window: int) -> torch.Tensor:
     """Each step's last `window` observations, oldest first, zero before the episode start.
+
+    Returned as `ObsWindows`, which keeps `obs` and computes the windows only when an
+    operation needs them (its slices along time stay lazy); `AgentBlocks` reads the
+    observations from it directly.
 
     Args:
         obs: [E, B, T', N, O].
     Returns:
         [E, B, T', N, window * O].
     """
+    return ObsWindows(obs, window)
+
+
+def obs_windows_dense(obs: torch.Tensor, window: int) -> torch.Tensor:
+    """`obs_history` as one dense tensor [E, B, T', N, window * O]."""
     pad = obs.new_zeros(*obs.shape[:2], window - 1, *obs.shape[3:])
     padded = torch.cat([pad, obs], dim=2)
     tp = obs.shape[2]
     return torch.cat([padded[:, :, i : i + tp] for i in range(window)], dim=-1)
+
+
+class ObsWindows(LazyTensor):
+    """The windows of `obs_history` for steps start .. start+steps-1 of obs, [E, B, steps, N,
+    window * O], kept as obs (read-only). Slicing along time gives another ObsWindows of the
+    same obs; anything else sees the dense windows."""
+
+    def __new__(cls, obs: torch.Tensor, window: int, start: int = 0, steps: int | None = None):
+        e, b, tp, n, o = obs.shape
+        steps = tp - start if steps is None else steps
+        return super().__new__(cls, (e, b, steps, n, window * o), obs)
+
+    def __init__(self, obs: torch.Tensor, window: int, start: int = 0, steps: int | None = None):
+        super().__init__(tuple(self.shape), obs)
+        self.obs, self.window, self.start, self.steps = obs, window, start, self.shape[2]
+        self._norms: list[torch.Tensor] = []  # shared by every slice of the same windows
+
+    def materialise(self) -> torch.Tensor:
+        stop = self.start + self.steps
+        return obs_windows_dense(self.obs[:, :, :stop], self.window)[:, :, self.start :]
+
+    def structured(self, func: Any, args: tuple, kwargs: dict) -> Any:
+        if func is not torch.ops.aten.slice.Tensor or kwargs:
+            return NotImplemented
+        dim, lo, hi, step = (list(args[1:]) + [0, None, None, 1][len(args) - 1 :])[:4]
+        if dim not in (2, -3) or step != 1:
+            return NotImplemented
+        lo, hi, _ = slice(lo, hi).indices(self.steps)
+        part = ObsWindows(self.obs, self.window, self.start + lo, max(hi - lo, 0))
+        part._norms = self._norms
+        return part
+
+    def padded_l1(self) -> torch.Tensor:
+        """|obs|_1 per (e, b, step, i) after window - 1 zero steps, [E, B, W-1+T_obs, N]
+        (computed once for all slices)."""
+        if not self._norms:
+            with torch.no_grad():
+                l1 = obs_l1(self.obs)
+                pad = l1.new_zeros(*l1.shape[:2], self.window - 1, l1.shape[-1])
+                self._norms.append(torch.cat([pad, l1], dim=2))
+        return self._norms[0]
+
+
+class AgentBlocks(LazyTensor):
+    """A central critic's input x [E, B*T', N*block] with block = [the agent's window of
+    observations (W*O), its action one-hot (A), its id one-hot (N)], kept as its parts: the
+    windows (an `ObsWindows`), the actions and A.
+
+    `block_l1`, `alive_rows` and `action_index` are what the critic's first layer
+    (`learner.networks.block_contributions`) and LRP's per-agent sums (`learner.lrp`) need.
+    Any other torch operation sees the dense tensor (`agent_blocks_dense`, computed once on
+    first use). Built by `agent_blocks`.
+
+    Series index s (0 .. T'+W-2) is observation step hist.start + s - (W-1): window t holds
+    series rows t .. t+W-1.
+    """
+
+    def __new__(cls, hist: ObsWindows, actions: torch.Tensor, a: int):
+        e, b, tp, n, wo = hist.shape
+        return super().__new__(cls, (e, b * tp, n * (wo + a + n)), hist)
+
+    def __init__(self, hist: ObsWindows, actions: torch.Tensor, a: int):
+        super().__init__(tuple(self.shape), hist)
+        self.hist, self.actions, self.n_actions = hist, actions, a
+        _, self.episodes, self.steps, self.n_agents, wo = hist.shape
+        self.obs_dim, self.window = hist.obs.shape[-1], hist.window
+        self.block = wo + a + self.n_agents
+        self._rows: tuple | None = None
+
+    def materialise(self) -> torch.Tensor:
+        return agent_blocks_dense(self.hist, self.actions, self.n_actions)
+
+    def series_l1(self) -> torch.Tensor:
+        """|obs|_1 of every series row, [E, B, T'+W-1, N] (zero before the episode start)."""
+        return self.hist.padded_l1()[:, :, self.hist.start : self.hist.start + self.span_rows]
+
+    @property
+    def span_rows(self) -> int:
+        return self.steps + self.window - 1
+
+    def block_l1(self) -> torch.Tensor:
+        """Σ_j |x_j| over each agent's block, [E, B*T', N]: its window's observations plus 1
+        for the action one-hot and 1 for the id one-hot."""
+        l1, tp = self.series_l1(), self.steps
+        window_l1 = sum(l1[:, :, k : k + tp] for k in range(self.window))
+        return (window_l1 + 2.0).reshape(l1.shape[0], -1, self.n_agents)
+
+    @property
+    def span(self) -> int:
+        """Time rows of the buffers `alive_rows` indexes: every window t = s - w a series row s
+        can fill, t in [-(W-1), T'+W-1), shifted by W-1 to start at 0."""
+        return self.steps + 2 * (self.window - 1)
+
+    def alive_rows(self) -> tuple[torch.Tensor, list[int], torch.Tensor, torch.Tensor]:
+        """The non-zero observations, grouped by (member, agent), and where they go.
+
+        Returns (rows [K, O]; the number of rows of each (e, i) group, e-major; for each row,
+        the flat index of the window its slot 0 fills, t = s, in a buffer [E, B, span, N]
+        (`span`; slot w fills the index minus w*N); the same in a buffer [E, B, span]
+        summed over agents (minus w for slot w)). An all-zero observation (a dead agent,
+        padding, before the episode start) adds nothing to a linear map of x, so only these
+        rows are multiplied."""
+        if self._rows is None:
+            with torch.no_grad():
+                self._rows = self._find_rows()
+        return self._rows
+
+    def action_index(self) -> torch.Tensor:
+        """Each (e, row, i)'s row in the first layer's action weights seen as [E*N*A, H]:
+        (e*N + i)*A + action, [E, B*T', N]."""
+        e, n, a = self.actions.shape[0], self.n_agents, self.n_actions
+        member = torch.arange(e, device=self.actions.device).view(e, 1, 1, 1)
+        agent = torch.arange(n, device=self.actions.device).view(1, 1, 1, n)
+        return ((member * n + agent) * a + self.actions).view(e, -1, n)
+
+    def _find_rows(self) -> tuple:
+        e, b, _, n = self.series_l1().shape
+        idx = (self.series_l1() > 0).permute(0, 3, 1, 2).nonzero()  # sorted by (e, i, b, s)
+        ei, ni, bi, si = idx.unbind(1)
+        counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
+        rows = self.hist.obs[ei, bi, si + self.hist.start - (self.window - 1), ni]
+        window = (ei * b + bi) * self.span + si + self.window - 1
+        return rows, counts, window * n + ni, window
+
+
+def agent_blocks_dense(hist: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """Per-agent blocks [history, action one-hot, id one-hot] laid end to end, as one tensor.
+
+    Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
+    """
+    e, b, tp, n, _ = hist.shape
+    ids = torch.eye(n, device=hist.device).expand(e, b, tp, n, n)
+    x = torch.cat([hist, F.one_hot(actions, n_actions).float(), ids], dim=-1)
+    return x.reshape(e, b * tp, -1)
+
+
+def agent_blocks(
+    hist: torch.Tensor, actions: torch.Tensor, n_actions: int, window: int
+) -> torch.Tensor:
+    """The critic input of `agent_blocks_dense`: lazily as `AgentBlocks` when `hist` is an
+    `obs_history` result (or a time slice of one) of this window, else dense. Both hold the
+    same values.
+
+    Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
+    """
+    if isinstance(hist, ObsWindows) and hist.window == window:
+        return AgentBlocks(hist, actions, n_actions)
+    return agent_blocks_dense(hist, actions, n_actions)
 
 
 def joint_obs(obs: torch.Tensor) -> torch.Tensor:

@@ -30,10 +30,18 @@ from typing import Literal
 
 import torch
 
-from learner.networks import MLP
+from learner.batch import AgentBlocks
+from learner.lazy import LazyTensor
+from learner.networks import MLP, block_contributions
 
 LrpRule = Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"]
 LRP_RULES: tuple[str, ...] = ("eps_residual", "eps", "eps_nobias", "grad_x_input")
+
+
+def _share(weight: torch.Tensor) -> torch.Tensor:
+    """Each entry's fraction of its row's total (last axis), zero for an all-zero row."""
+    total = weight.sum(-1, keepdim=True)
+    return torch.where(total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight))
 
 
 def _stabilise(z: torch.Tensor, eps: float) -> torch.Tensor:
@@ -45,6 +53,10 @@ def lrp_epsilon(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Relevance of every input feature for the (single) output of `mlp`.
 
+    For an `AgentBlocks` input (RDN's critic input) the relevance comes back as a
+    `BlockRelevance`: the same values (computed only if used as a tensor), with each agent's
+    sum already known, so `agent_relevance` costs nothing and the input is never built densely.
+
     Args:
         mlp: a ReLU MLP with one output unit.
         x: inputs, [E, M, D].
@@ -53,6 +65,8 @@ def lrp_epsilon(
     Returns:
         (relevance [E, M, D], output [E, M]).
     """
+    if isinstance(x, AgentBlocks):
+        return _lrp_blocks(mlp, x, eps, rule)
     if rule == "grad_x_input":
         return _grad_x_input(mlp, x)
     with torch.no_grad():
@@ -69,12 +83,84 @@ def lrp_epsilon(
         if rule == "eps_residual":
             residual = out - relevance.sum(-1)
             weight = x.abs()
-            total = weight.sum(-1, keepdim=True)
-            share = torch.where(
-                total > 0, weight / total.clamp_min(1e-12), torch.zeros_like(weight)
-            )
+            share = _share(weight)
             relevance = relevance + residual.unsqueeze(-1) * share
     return relevance, out
+
+
+class BlockRelevance(LazyTensor):
+    """LRP relevance [E, M, N*block] of an `AgentBlocks` input, kept as each agent's sum
+    (`per_agent` [E, M, N]) and what the dense values need: relevance = x * (s @ W1ᵀ), plus
+    for eps_residual the residual spread over the inputs in proportion to |x_j|."""
+
+    def __new__(cls, x: AgentBlocks, *args, **kwargs):
+        return super().__new__(cls, tuple(x.shape), x)
+
+    def __init__(
+        self,
+        x: AgentBlocks,
+        per_agent: torch.Tensor,
+        s1: torch.Tensor,
+        w1: torch.Tensor,
+        residual: torch.Tensor | None,
+    ):
+        super().__init__(tuple(x.shape), x)
+        self.x, self.per_agent, self.s1, self.w1, self.residual = x, per_agent, s1, w1, residual
+
+    def materialise(self) -> torch.Tensor:
+        x = self.x.dense()
+        relevance = x * torch.bmm(self.s1, self.w1.transpose(1, 2))
+        if self.residual is not None:
+            weight = x.abs()
+            share = _share(weight)
+            relevance = relevance + self.residual.unsqueeze(-1) * share
+        return relevance
+
+
+def _lrp_blocks(
+    mlp: MLP, x: AgentBlocks, eps: float, rule: LrpRule
+) -> tuple[BlockRelevance, torch.Tensor]:
+    """`lrp_epsilon` on an AgentBlocks input. The first layer is linear, so agent i's summed
+    first-layer relevance Σ_{j in block i} x_j Σ_k w_jk s_k is Σ_k s_k c_ik, with c_i its
+    block's contribution to the pre-activation (`block_contributions`); the layers above run
+    as in the dense rule. grad_x_input likewise: Σ_k (∂out/∂z1_k) c_ik."""
+    first = mlp.layers[0]
+    with torch.no_grad():
+        c = block_contributions(first, x)  # [E, M, N, H]
+        z1 = c.sum(2) + first.bias
+    if rule == "grad_x_input":
+        with torch.enable_grad():
+            z = z1.detach().requires_grad_(True)
+            a = z
+            for layer in mlp.layers[1:]:
+                a = layer(torch.relu(a))
+            (s1,) = torch.autograd.grad(a.sum(), z)
+        out = a.detach().squeeze(-1)
+        per_agent = (c * s1.unsqueeze(2)).sum(-1)
+        return BlockRelevance(x, per_agent, s1, first.weight.detach().clone(), None), out
+    with torch.no_grad():
+        zs, acts = [z1], []
+        for layer in mlp.layers[1:]:
+            acts.append(torch.relu(zs[-1]))
+            zs.append(layer(acts[-1]))
+        out = zs[-1]
+        relevance = out
+        for k in range(len(mlp.layers) - 1, 0, -1):
+            layer = mlp.layers[k]
+            z = zs[k] if rule != "eps_nobias" else torch.bmm(acts[k - 1], layer.weight)
+            s = relevance / _stabilise(z, eps)
+            relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
+        s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else c.sum(2), eps)
+        per_agent = (c * s1.unsqueeze(2)).sum(-1)  # [E, M, N]
+        out = out.squeeze(-1)
+        residual = None
+        if rule == "eps_residual":
+            residual = out - per_agent.sum(-1)
+            weight = x.block_l1()
+            share = _share(weight)
+            per_agent = per_agent + residual.unsqueeze(-1) * share
+    w1 = first.weight.detach().clone()  # the critic may be updated before the values are used
+    return BlockRelevance(x, per_agent, s1, w1, residual), out
 
 
 def _grad_x_input(mlp: MLP, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,6 +183,8 @@ def agent_relevance(relevance: torch.Tensor, n_agents: int) -> torch.Tensor:
     e, m, d = relevance.shape
     if d % n_agents:
         raise ValueError(f"input width {d} is not a multiple of n_agents={n_agents}")
+    if isinstance(relevance, BlockRelevance) and relevance.per_agent.shape[-1] == n_agents:
+        return relevance.per_agent
     return relevance.view(e, m, n_agents, d // n_agents).sum(-1)
 
 

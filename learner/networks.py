@@ -17,6 +17,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from learner.batch import AgentBlocks, AgentInputs
+
 
 class EnsembleLinear(nn.Module):
     """E independent affine maps. Shapes: x [E, M, in] -> [E, M, out]."""
@@ -32,6 +34,45 @@ class EnsembleLinear(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.baddbmm(self.bias, x, self.weight)
+
+
+class AgentBlockLinear(nn.Module):
+    """One affine map shared by N agents' input blocks laid end to end: agent i's block
+    [i*block, (i+1)*block) goes to its own H units [i*H, (i+1)*H), with the same weights for
+    every agent (a per-agent encoder with parameter sharing, as the agents' networks have).
+
+    As a layer it is the dense layer whose weight is block-diagonal, so `weight` and `bias`
+    expose that dense form ([E, N*block, N*H], [E, 1, N*H]) for LRP; `forward` computes it
+    per block. Shapes: x [E, M, N*block] -> [E, M, N*H].
+    """
+
+    def __init__(self, n_ensemble: int, n_agents: int, block: int, hidden: int):
+        super().__init__()
+        self.n_agents, self.block, self.hidden = n_agents, block, hidden
+        self.in_features, self.out_features = n_agents * block, n_agents * hidden
+        bound = 1.0 / math.sqrt(block)
+        self.block_weight = nn.Parameter(
+            torch.empty(n_ensemble, block, hidden).uniform_(-bound, bound)
+        )
+        self.block_bias = nn.Parameter(torch.empty(n_ensemble, 1, hidden).uniform_(-bound, bound))
+
+    @property
+    def weight(self) -> torch.Tensor:
+        eye = torch.eye(
+            self.n_agents, dtype=self.block_weight.dtype, device=self.block_weight.device
+        )
+        full = torch.einsum("ij,epq->eipjq", eye, self.block_weight)
+        return full.reshape(-1, self.in_features, self.out_features)
+
+    @property
+    def bias(self) -> torch.Tensor:
+        return self.block_bias.repeat(1, 1, self.n_agents)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        e, m, _ = x.shape
+        xb = x.reshape(e, m * self.n_agents, self.block)
+        out = torch.baddbmm(self.block_bias, xb, self.block_weight)
+        return out.view(e, m, self.out_features)
 
 
 class EnsembleGRUCell(nn.Module):
@@ -112,31 +153,107 @@ class AgentNet(nn.Module):
 class MLP(nn.Module):
     """ReLU MLP with a linear output, e.g. the central critic 64-64-1.
 
-    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP.
+    Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP. With `first` given
+    (e.g. an `AgentBlockLinear`), that layer comes first and `in_features` is ignored. An
+    `AgentBlocks` input (RDN's critic input, kept as its parts) goes through the first layer by
+    `block_contributions`, which multiplies each observation once instead of the dense input.
     """
 
     def __init__(
-        self, n_ensemble: int, in_features: int, hidden: tuple[int, ...], out_features: int = 1
+        self,
+        n_ensemble: int,
+        in_features: int,
+        hidden: tuple[int, ...],
+        out_features: int = 1,
+        first: nn.Module | None = None,
     ):
         super().__init__()
-        sizes = [in_features, *hidden, out_features]
+        head = [] if first is None else [first]
+        sizes = [in_features if first is None else first.out_features, *hidden, out_features]
         self.layers = nn.ModuleList(
-            EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)
+            head + [EnsembleLinear(n_ensemble, a, b) for a, b in itertools.pairwise(sizes)]
         )
 
+    def first(self, x: torch.Tensor) -> torch.Tensor:
+        """The first layer's pre-activation, [E, M, hidden[0]]."""
+        if isinstance(x, AgentBlocks):
+            return block_preactivation(self.layers[0], x)
+        return self.layers[0](x)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
-        return self.layers[-1](x)
+        return self.activations(x)[-1]
 
     def activations(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Inputs of every layer followed by the output: [x, a1, ..., a_L, y]."""
         acts = [x]
-        for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
-            acts.append(x)
-        acts.append(self.layers[-1](x))
+        z = self.first(x)
+        for layer in self.layers[1:]:
+            acts.append(F.relu(z))
+            z = layer(acts[-1])
+        acts.append(z)
         return acts
+
+
+def block_contributions(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """Each agent's block's part of a linear layer's pre-activation: c [E, M, N, H] with
+    layer(x) = c.sum(2) + bias (differentiable in the layer's weight).
+
+    c_i = Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i], where W_i,w are the rows
+    of agent i's window slot w. Every non-zero observation is multiplied once by the weights
+    of all W slots ([K, O] x [O, W*H] per member and agent) and added into the W windows it
+    sits in; all-zero observations (dead agents, padding) are skipped, and the one-hots are
+    row look-ups. The dense product x @ W multiplies each observation W times, mostly zeros.
+    """
+    e, m, _ = x.shape
+    n, h = x.n_agents, layer.out_features
+    hist = _window_terms(layer, x, per_agent=True)
+    w_act, w_id = _onehot_weights(layer, x)
+    own_action = F.embedding(x.action_index(), w_act)  # [E, M, N, H]
+    return hist.reshape(e, m, n, h) + own_action + w_id.unsqueeze(1)
+
+
+def block_preactivation(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """layer(x) for an AgentBlocks x, [E, M, H]: `block_contributions` summed over agents as
+    it is built (no per-agent tensor)."""
+    e, m, _ = x.shape
+    h = layer.out_features
+    hist = _window_terms(layer, x, per_agent=False).reshape(e, m, h)
+    w_act, w_id = _onehot_weights(layer, x)
+    actions = F.embedding_bag(x.action_index().view(e * m, -1), w_act, mode="sum")
+    return hist + actions.view(e, m, h) + (w_id.sum(1) + layer.bias.squeeze(1)).unsqueeze(1)
+
+
+def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor, torch.Tensor]:
+    """The action one-hot rows as [E*N*A, H] (`AgentBlocks.action_index` order) and each
+    agent's own id row [E, N, H]."""
+    e, n, a, wo = x.shape[0], x.n_agents, x.n_actions, x.window * x.obs_dim
+    wb = layer.weight.view(e, n, x.block, layer.out_features)
+    w_act = wb[:, :, wo : wo + a].reshape(e * n * a, -1)
+    w_id = torch.diagonal(wb[:, :, wo + a :], dim1=1, dim2=2).transpose(1, 2)
+    return w_act, w_id
+
+
+def _window_terms(layer: EnsembleLinear, x: AgentBlocks, per_agent: bool) -> torch.Tensor:
+    """Σ_w obs_{t-W+1+w, i} W_i,w for every window: [E, B, T', N, H] (per agent) or
+    [E, B, T', H] (summed over agents)."""
+    e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, layer.out_features
+    wb = layer.weight.view(e, n, x.block, h)
+    w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
+    w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
+    rows, counts, to_agent, to_sum = x.alive_rows()
+    parts = [
+        torch.mm(r, wt)
+        for r, wt, k in zip(rows.split(counts), w_obs.unbind(0), counts, strict=True)
+        if k
+    ]
+    proj = torch.cat(parts) if parts else rows.new_zeros(0, w * h)
+    shape = (e, x.episodes, x.span, n) if per_agent else (e, x.episodes, x.span)
+    step = n if per_agent else 1
+    dest = (to_agent if per_agent else to_sum).unsqueeze(1) - step * torch.arange(
+        w, device=proj.device
+    )
+    buf = proj.new_zeros(math.prod(shape), h).index_add_(0, dest.reshape(-1), proj.view(-1, h))
+    return buf.view(*shape, h)[:, :, w - 1 : w - 1 + x.steps]
 
 
 class QMixer(nn.Module):
@@ -184,17 +301,24 @@ def clip_grad_norm_per_member(params: list[nn.Parameter], max_norm: float) -> to
 
 def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
     """Run the agent over whole episodes: recurrent from a zero hidden state, step by step;
-    feed-forward in one call over every step.
+    feed-forward in one call over every step. `AgentInputs` (what `agent_inputs` returns)
+    are projected by `input_projection` without being built.
 
     Shapes: inputs [E, B, T', N, D] -> outputs [E, B, T', N, A].
     """
     e, b, tp, n, d = inputs.shape
     if not agent.recurrent:
-        out = agent.head(F.relu(agent.inp(inputs.reshape(e, b * tp * n, d))))
-        return out.view(e, b, tp, n, -1)
+        if isinstance(inputs, AgentInputs):
+            first = input_projection(agent.inp, inputs, time_major=False)
+        else:
+            first = agent.inp(inputs.reshape(e, b * tp * n, d))
+        return agent.head(F.relu(first.reshape(e, b * tp * n, -1))).view(e, b, tp, n, -1)
     # The input projection and the layers after the GRU act on every step at once; only the
     # recurrence itself runs step by step (same arithmetic as calling the agent per step).
-    gi = agent.gru.ih(inputs.transpose(1, 2).reshape(e, tp * b * n, d)).view(e, tp, b * n, -1)
+    if isinstance(inputs, AgentInputs):
+        gi = input_projection(agent.gru.ih, inputs, time_major=True).view(e, tp, b * n, -1)
+    else:
+        gi = agent.gru.ih(inputs.transpose(1, 2).reshape(e, tp * b * n, d)).view(e, tp, b * n, -1)
     h = agent.init_hidden(e, b * n)
     hs = []
     for g in gi.unbind(1):  # unbind, not gi[:, t]: one gradient stack, not one per step
@@ -202,6 +326,24 @@ def unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
         hs.append(h)
     out = agent.head(torch.stack(hs, dim=1).view(e, tp * b * n, -1))
     return out.view(e, tp, b, n, -1).transpose(1, 2)
+
+
+def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) -> torch.Tensor:
+    """layer(x) for AgentInputs x, [E, T', B, N, H] (time_major) or [E, B, T', N, H]: the
+    non-zero observations times the observation rows (one product per member), plus one
+    look-up per input in a table of (agent id row + last action row + bias). Differentiable
+    in the layer."""
+    e, _, _, n, o = x.obs.shape
+    a, h = x.n_actions, layer.out_features
+    w_obs, w_act, w_id = layer.weight.split([o, a, n], dim=1)
+    w_last = torch.cat([w_act, w_act.new_zeros(e, 1, h)], dim=1)  # row A: no last action
+    table = w_last.unsqueeze(1) + (w_id + layer.bias).unsqueeze(2)  # [E, N, A+1, H]
+    out = F.embedding(x.onehot_index(time_major), table.reshape(-1, h))
+    rows, counts, flat = x.rows(time_major)
+    parts = [torch.mm(r, w) for r, w, k in zip(rows.split(counts), w_obs, counts, strict=True) if k]
+    if parts:
+        out.view(-1, h).index_add_(0, flat, torch.cat(parts))
+    return out
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,9 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
-from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_inputs, masked_mean, obs_history
+from learner.batch import TensorBatch, agent_blocks, agent_inputs, masked_mean, obs_history
 from learner.common import (
     AgentConfig,
     AgentCriticLearner,
@@ -40,7 +39,7 @@ from learner.lrp import (
     lrp_difference,
     lrp_epsilon,
 )
-from learner.networks import MLP, unroll
+from learner.networks import MLP, AgentBlockLinear, unroll
 from learner.targets import q_lambda_targets
 
 
@@ -58,6 +57,10 @@ class RDNConfig:
         reward_norm: "none", "scale" or "standardise" (as the value family's).
         td_lambda: λ of the critic's Q(λ) targets (0: one-step TD).
         critic_hidden: hidden widths of the central critic MLP.
+        critic_agent_encoder: 0 (the seed's critic: the MLP acts on the concatenated blocks) or
+            the width H of a first layer shared by every agent's block (`AgentBlockLinear`:
+            agent i's block -> its own H units, the same weights for all agents), before the
+            `critic_hidden` layers. Still a ReLU MLP over the same input, so LRP is unchanged.
         obs_window: how many of each agent's latest observations the critic sees.
         lrp_rule: relevance rule, one of learner.lrp.LRP_RULES.
         lrp_eps: ε of the LRP-ε rule.
@@ -84,6 +87,7 @@ class RDNConfig:
     reward_norm: Literal["none", "scale", "standardise"] = "none"
     td_lambda: float = 0.0
     critic_hidden: tuple[int, ...] = (64, 64)
+    critic_agent_encoder: int = 0
     obs_window: int = 4
     lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
     lrp_eps: float = 0.01
@@ -105,6 +109,8 @@ class RDNConfig:
         )
         if self.lrp_eps <= 0:
             raise ValueError(f"lrp_eps must be > 0, got {self.lrp_eps}")
+        if self.critic_agent_encoder < 0:
+            raise ValueError(f"critic_agent_encoder must be >= 0, got {self.critic_agent_encoder}")
         for name in ("obs_window", "joint_max_limit"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -145,7 +151,10 @@ class RDNLearner(AgentCriticLearner):
             )
         self.block = cfg.obs_window * info.obs_dim + a + n
         self.agent = cfg.agent.build(n_ensemble, info).to(device)
-        self.critic = MLP(n_ensemble, n * self.block, tuple(cfg.critic_hidden), 1).to(device)
+        first = None
+        if cfg.critic_agent_encoder:
+            first = AgentBlockLinear(n_ensemble, n, self.block, cfg.critic_agent_encoder)
+        self.critic = MLP(n_ensemble, n * self.block, tuple(cfg.critic_hidden), 1, first).to(device)
         self.target_critic = TargetNet(self.critic, cfg.target_update_episodes)
         self.clock = EpisodeClock(cfg.target_update_episodes)
         self.reward_norm = RewardNorm(cfg.reward_norm, n_ensemble, device)
@@ -165,14 +174,13 @@ class RDNLearner(AgentCriticLearner):
         return True
 
     def critic_inputs(self, hist: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Per-agent blocks [history, action one-hot, id one-hot] laid end to end.
+        """Per-agent blocks [history, action one-hot, id one-hot] laid end to end
+        (`learner.batch.agent_blocks`: kept as its parts when hist is a window view, so the
+        critic and LRP multiply each observation once; dense otherwise, the same values).
 
         Shapes: hist [E, B, T', N, W*O], actions [E, B, T', N] -> [E, B*T', N*block].
         """
-        e, b, tp, n, _ = hist.shape
-        ids = torch.eye(n, device=hist.device).expand(e, b, tp, n, n)
-        x = torch.cat([hist, F.one_hot(actions, self.info.n_actions).float(), ids], dim=-1)
-        return x.reshape(e, b * tp, n * self.block)
+        return agent_blocks(hist, actions, self.info.n_actions, self.cfg.obs_window)
 
     def _next_value(
         self, hist_next: torch.Tensor, qs_next: torch.Tensor, avail_next: torch.Tensor

@@ -1,7 +1,9 @@
 """The one explicit env registry: id -> how to build the env (single and batched).
 
 Ids are "<family>/<name>" (`matrix/two_step`, later `skirmish/3m`, `smac/3m`). Nothing
-registers itself on import: every family is listed in `_families()` below.
+registers itself on import: every family is listed in `_families()` below. One family is
+parametrised and built on request instead of listed: `skirmish/bane_z<N>`, bane_vs_bane with
+N allied zerglings (the seed's redundancy variants with any N).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import Any
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
 from actors.envs.skirmish import builtin_map, builtin_map_names, make_skirmish, make_skirmish_vec
+from actors.envs.skirmish.spec import BANE_VARIANT
 from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
 
 
@@ -50,18 +53,21 @@ def _families() -> list[EnvSpec]:
     return specs
 
 
+def _skirmish_map_spec(name: str) -> EnvSpec:
+    """`skirmish/<name>` for a built-in map (or a generated `bane_z<N>`)."""
+
+    def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
+        return make_skirmish(seed, map_name=name, **options)
+
+    def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
+        return make_skirmish_vec(num_envs, seed, map_name=name, **options)
+
+    kind = "SMACv2-style randomised scenario" if builtin_map(name).randomised else "SMAC map"
+    return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, {kind} {name}")
+
+
 def _skirmish_specs() -> list[EnvSpec]:
     """`skirmish/<map>` for each built-in map, and `skirmish/custom` (arg `map_file=PATH`)."""
-
-    def builtin(name: str) -> EnvSpec:
-        def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
-            return make_skirmish(seed, map_name=name, **options)
-
-        def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
-            return make_skirmish_vec(num_envs, seed, map_name=name, **options)
-
-        kind = "SMACv2-style randomised scenario" if builtin_map(name).randomised else "SMAC map"
-        return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, {kind} {name}")
 
     def make_custom(seed: int | None = None, map_file: str | None = None, **options: Any):
         return make_skirmish(seed, map_file=map_file, **options)
@@ -77,7 +83,7 @@ def _skirmish_specs() -> list[EnvSpec]:
         make_custom_vec,
         "skirmish map from a YAML file (map_file=PATH)",
     )
-    return [builtin(n) for n in builtin_map_names()] + [custom]
+    return [_skirmish_map_spec(n) for n in builtin_map_names()] + [custom]
 
 
 REGISTRY: dict[str, EnvSpec] = {spec.id: spec for spec in _families()}
@@ -89,10 +95,15 @@ def env_ids() -> list[str]:
 
 def get_spec(env_id: str) -> EnvSpec:
     """Return the spec of `env_id`; unknown ids raise EnvError listing the valid ones."""
-    try:
+    if env_id in REGISTRY:
         return REGISTRY[env_id]
-    except KeyError:
-        raise EnvError(f"unknown env {env_id!r}; valid envs: {', '.join(env_ids())}") from None
+    family, _, name = env_id.partition("/")
+    if family == "skirmish" and BANE_VARIANT.fullmatch(name):
+        return _skirmish_map_spec(name)  # generated on the fly (errors name the valid N)
+    raise EnvError(
+        f"unknown env {env_id!r}; valid envs: {', '.join(env_ids())}, "
+        "skirmish/bane_z<N> (bane_vs_bane with N allied zerglings)"
+    )
 
 
 def _call(factory: Callable[..., Any], env_id: str, *args: Any, **kwargs: Any) -> Any:

@@ -4,14 +4,17 @@ batch, side by side.
 One batch of `--batch` episodes is recorded once on `--env` with a uniformly random policy
 (ε = 1); every algorithm is built from its shipped config (plus `--set` overrides) and steps on
 that same batch. Rounds interleave the algorithms so that drift in the machine's load hits them
-alike; the JSON has each one's median milliseconds per update and its ratio to the first.
+alike; the JSON has each one's median milliseconds per update, its ratio to the first
+(`ratio`: the last algorithm's), and how much one update raises resident memory.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -65,6 +68,34 @@ def record_batch(env: str, episodes: int, seeds: int) -> EpisodeBatch:
     return parts[0] if seeds == 1 else EpisodeBatch.stack(parts)
 
 
+def _status_kib(field: str) -> int | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def update_peak_mib(learner, batch: EpisodeBatch) -> float | None:
+    """How far one update raises the process's resident memory above where it started
+    (Linux: the peak-RSS mark is reset through /proc/self/clear_refs, then read back as
+    VmHWM); None where that is not available. Memory the allocator kept from earlier work
+    and reuses is not counted, so this is a lower bound of the update's working set."""
+    gc.collect()
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return None
+    base = _status_kib("VmRSS")
+    learner.step(batch)
+    top = _status_kib("VmHWM")
+    if base is None or top is None:
+        return None
+    return round(max(0, top - base) / 1024, 1)
+
+
 def overrides_for(algo: str, overrides: list[str]) -> list[str]:
     """The --set values that apply to `algo`: unprefixed ones and those prefixed `algo:`."""
     out = []
@@ -96,6 +127,7 @@ def cmd_update(args: argparse.Namespace) -> int:
         )
         learner.step(batch)  # warm-up: allocator and first-call costs out of the timing
         learners[a] = learner
+    peak = {a: update_peak_mib(learner, batch) for a, learner in learners.items()}
     times: dict[str, list[float]] = {a: [] for a in algos}
     for _ in range(args.rounds):
         for a, learner in learners.items():
@@ -115,6 +147,8 @@ def cmd_update(args: argparse.Namespace) -> int:
             "overrides": args.set,
             "ms_per_update": ms,
             f"ratio_to_{first}": {a: round(ms[a] / ms[first], 2) for a in algos},
+            "ratio": round(ms[algos[-1]] / ms[first], 2),  # the last algo's to the first's
+            "peak_mib_per_update": peak,
             "rounds_ms": {a: [round(x, 2) for x in v] for a, v in times.items()},
             "load_avg_1m": os.getloadavg()[0],
         },

@@ -8,6 +8,7 @@ import logging
 
 from actors.envs.base import EnvError
 from actors.envs.registry import env_ids, env_info
+from actors.envs.skirmish.spec import BANE_VARIANT_MAX
 from cluster.commands import add_command
 
 log = logging.getLogger(__name__)
@@ -86,6 +87,11 @@ def cmd_list(args: argparse.Namespace) -> int:
         ]
         note = "  (unavailable: needs StarCraft II SMAC)" if r.get("available") is False else ""
         print("  ".join(cells) + note)
+    print(
+        "generated on request: skirmish/bane_z<N>, bane_vs_bane with N allied zerglings "
+        f"(0..{BANE_VARIANT_MAX}; bane_z20 = bane_vs_bane, bane_z15 = bane_med, "
+        "bane_z10 = bane_small)"
+    )
     return 0
 
 

@@ -1,6 +1,7 @@
 """`credit repro matrix`: the seed's matrix-game experiment (Fig. 5.3) for every algorithm;
 `credit repro emcac`: the seed's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13);
-`credit repro smac`: the value family and RDN on SMAC-like maps (results/smac/)."""
+`credit repro smac`: the value family and RDN on SMAC-like maps (results/smac/);
+`credit repro redundancy`: the seed's redundant-agents experiment (Table 5.1, Figs. 5.6-5.9)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from cluster import repro_curves, repro_emcac, repro_matrix, repro_smac
+from cluster import repro_curves, repro_emcac, repro_matrix, repro_redundancy, repro_smac
 from cluster.cli_errors import UsageError
 from cluster.commands import add_command
 from cluster.run_config import load_train_config
@@ -84,6 +86,31 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
         repro_smac,
         default_seeds=3,
     )
+    m = _register_curves(
+        rsub,
+        "redundancy",
+        "Seed Table 5.1 and Figs. 5.6-5.9: train the value family and RDN on bane_vs_bane "
+        "variants; writes OUT/evals/*.jsonl as it runs, then summary.json, curves.json, one "
+        "PNG per map and the redundancy_*.png figures.",
+        repro_redundancy,
+        default_seeds=3,
+    )
+    m.add_argument(
+        "--zerglings",
+        default="",
+        metavar="N,N,...",
+        help="also generated maps skirmish/bane_z<N>: bane_vs_bane with N allied zerglings "
+        "(the enemy keeps 20 zerglings + 4 banelings); --envs '' runs only these",
+    )
+    m.set_defaults(
+        func=lambda args: cmd_curves(
+            args,
+            "redundancy",
+            repro_redundancy,
+            extra_envs=repro_redundancy.zergling_envs(args.zerglings),
+            figures=repro_redundancy.write_figures,
+        )
+    )
 
 
 def _register_curves(
@@ -92,7 +119,7 @@ def _register_curves(
     help_text: str,
     experiment: ModuleType,
     default_seeds: int,
-) -> None:
+) -> argparse.ArgumentParser:
     m = add_command(rsub, name, help_text)
     m.add_argument(
         "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
@@ -120,7 +147,14 @@ def _register_curves(
         action="store_true",
         help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl",
     )
+    m.add_argument(
+        "--checkpoints",
+        action="store_true",
+        help="save each pair's final checkpoint (all seeds) to OUT/checkpoints/<env>__<algo>/ "
+        "(for `credit inspect relevance --run`)",
+    )
     m.set_defaults(func=lambda args: cmd_curves(args, name, experiment))
+    return m
 
 
 def _check_algos(algos: list[str]) -> None:
@@ -131,10 +165,18 @@ def _check_algos(algos: list[str]) -> None:
             )
 
 
-def cmd_curves(args: argparse.Namespace, name: str, experiment: ModuleType) -> int:
-    """`credit repro emcac` / `credit repro smac`: curves of every (algo, env) pair."""
+def cmd_curves(
+    args: argparse.Namespace,
+    name: str,
+    experiment: ModuleType,
+    extra_envs: list[str] = (),
+    figures: Callable[[list, list[str], Path, dict], list[str]] | None = None,
+) -> int:
+    """`credit repro emcac` / `smac` / `redundancy`: curves of every (algo, env) pair, then
+    the per-env plots and, with `figures`, the experiment's own figures over every env
+    (which may add to the summary)."""
     algos = [a for a in args.algos.split(",") if a]
-    envs = [g for g in args.envs.split(",") if g]
+    envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
     _check_algos(algos)
     if not algos or not envs:
         raise UsageError("--algos and --envs must name at least one algorithm and env")
@@ -160,19 +202,22 @@ def cmd_curves(args: argparse.Namespace, name: str, experiment: ModuleType) -> i
         watcher = threading.Thread(target=_watch, args=(out / "evals", t_max, done), daemon=True)
         watcher.start()
         try:
+            checkpoints = out / "checkpoints" if args.checkpoints else None
             curves = repro_curves.run(
-                algos, envs, args.seeds, overrides, args.workers, out / "evals"
+                algos, envs, args.seeds, overrides, args.workers, out / "evals", checkpoints
             )
         finally:
             done.set()
             watcher.join()
     summary = repro_curves.summarise(curves)
-    write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
     for g in envs:
         plots.append(f"{experiment.PLOT_PREFIX}_{g.split('/', 1)[1]}.png")
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
+    if figures is not None:
+        plots += figures(curves, envs, out, summary)
+    write_json(out / "summary.json", summary)
     log.info("repro %s finished in %.0f s", name, time.monotonic() - started)
     for g in envs:
         for a, v in summary[g].items():

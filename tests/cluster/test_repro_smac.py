@@ -77,3 +77,5 @@ def test_bench_update_times_algorithms_side_by_side(capsys):
     assert main([*argv, "--rounds", "1", "--updates", "1"]) == 0
     got = json.loads(capsys.readouterr().out)
     assert set(got["ms_per_update"]) == {"vdn", "rdn"} and got["ratio_to_vdn"]["vdn"] == 1.0
+    assert got["ratio"] == got["ratio_to_vdn"]["rdn"]
+    assert set(got["peak_mib_per_update"]) == {"vdn", "rdn"}

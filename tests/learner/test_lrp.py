@@ -194,3 +194,64 @@ def test_critic_all_actions_is_the_critic_on_each_counterfactual():
             alt = acts.clone()
             alt[..., i] = u
             torch.testing.assert_close(got[..., i, u], mlp(_blocks(o, alt, a)).squeeze(-1))
+
+
+def _encoder_mlp(e: int, n: int, block: int) -> MLP:
+    from learner.networks import AgentBlockLinear
+
+    return MLP(e, n * block, (8,), 1, AgentBlockLinear(e, n, block, 6))
+
+
+def test_agent_block_layer_is_the_block_diagonal_dense_layer():
+    """Agent i's block reaches only its own units, through weights every agent shares."""
+    from learner.networks import AgentBlockLinear
+
+    torch.manual_seed(3)
+    layer = AgentBlockLinear(2, 3, 5, 4)
+    x = torch.randn(2, 7, 15)
+    torch.testing.assert_close(layer(x), torch.baddbmm(layer.bias, x, layer.weight))
+    w = layer.weight.view(2, 3, 5, 3, 4)
+    for i in range(3):
+        torch.testing.assert_close(w[:, i, :, i], layer.block_weight)
+        for j in range(3):
+            if j != i:
+                assert torch.all(w[:, i, :, j] == 0.0)
+
+
+def test_lrp_through_an_agent_encoder_conserves_and_matches_the_shortcuts():
+    torch.manual_seed(4)
+    e, m, n, a, obs = 2, 5, 3, 4, 6
+    block = obs + a + n
+    mlp = _encoder_mlp(e, n, block)
+    o = torch.randn(e, m, n, obs)
+    acts = torch.randint(0, a, (e, m, n))
+    x = _blocks(o, acts, a)
+    rel, q = lrp_epsilon(mlp, x)
+    torch.testing.assert_close(rel.sum(-1), q)
+    every = agent_relevance_all_actions(mlp, x, acts, n, obs, a)
+    values = critic_all_actions(mlp, x, acts, n, obs, a)
+    for i in range(n):
+        alt = acts.clone()
+        alt[..., (i + 1) % n] = (acts[..., (i + 1) % n] + 1) % a
+        u = alt[..., (i + 1) % n]
+        rel_alt, q_alt = lrp_epsilon(mlp, _blocks(o, alt, a))
+        got = every[..., (i + 1) % n, :].gather(-1, u.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(got, agent_relevance(rel_alt, n)[..., (i + 1) % n])
+        got_q = values[..., (i + 1) % n, :].gather(-1, u.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(got_q, q_alt)
+
+
+def test_rdn_with_an_agent_encoder_steps_and_rejects_a_negative_width():
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.rdn import RDNConfig, RDNLearner
+
+    with pytest.raises(ValueError, match="critic_agent_encoder"):
+        RDNConfig(critic_agent_encoder=-1).validate()
+    cfg = RDNConfig(critic_agent_encoder=16, critic_hidden=(8,), agent_targets="counterfactual")
+    cfg.validate()
+    learner = RDNLearner(cfg, make_vec_env("skirmish/3m", 1).info.schema())
+    before = learner.critic.layers[0].block_weight.detach().clone()
+    metrics = learner.step(record_batch("skirmish/3m", 4, 1))
+    assert metrics["lrp_conservation_gap"] < 1e-3
+    assert not torch.equal(before, learner.critic.layers[0].block_weight)

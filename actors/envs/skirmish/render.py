@@ -86,12 +86,22 @@ class FrameDrawer:
         self.ax = ax
         self.static = list(ax.lines)
         self.title = ax.set_title("", fontsize=9)
+        self.note = ax.text(0.01, 0.99, "", transform=ax.transAxes, fontsize=6, va="top")
 
-    def draw(self, snap: dict[str, Any], title: str) -> np.ndarray:
-        """An RGB image [H, W, 3] (uint8) of a `snapshot` of the battle given to __init__."""
+    def draw(
+        self,
+        snap: dict[str, Any],
+        title: str,
+        tint: dict[int, Any] | None = None,
+        note: str = "",
+    ) -> np.ndarray:
+        """An RGB image [H, W, 3] (uint8) of a `snapshot` of the battle given to __init__;
+        `tint` maps unit indices to colours that replace their team colour (e.g. each agent's
+        share of the credit), `note` is a line of text at the top left."""
         ax, s, team, names = self.ax, snap, snap["team"], snap["names"]
         for line in [line for line in ax.lines if line not in self.static]:
             line.remove()
+        self.note.set_text(note)
         self.title.set_text(title)
         for u, t in enumerate(s["tgt"].tolist()):
             if t >= 0:
@@ -103,6 +113,8 @@ class FrameDrawer:
                 ax.plot(x, y, "x", color="0.7", ms=3)
                 continue
             color = "tab:blue" if team[u] == 0 else "tab:red"
+            if tint and u in tint:
+                color = tint[u]
             size = 4 + 8 * s["radius"][u]
             ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
             frac = s["hp"][u] / s["hp_max"][u]
@@ -117,11 +129,14 @@ class FrameDrawer:
         self.plt.close(self.fig)
 
 
-def draw_frame(snap: dict[str, Any], title: str) -> np.ndarray:
-    """An RGB image [H, W, 3] (uint8) of a `snapshot` (one frame; `FrameDrawer` for many)."""
+def draw_frame(
+    snap: dict[str, Any], title: str, tint: dict[int, Any] | None = None, note: str = ""
+) -> np.ndarray:
+    """An RGB image [H, W, 3] (uint8) of a `snapshot` (one frame; `FrameDrawer` for many);
+    `tint` and `note` as in `FrameDrawer.draw`."""
     drawer = FrameDrawer(snap)
     try:
-        return drawer.draw(snap, title)
+        return drawer.draw(snap, title, tint, note)
     finally:
         drawer.close()
 

@@ -1,0 +1,55 @@
+"""`credit inspect relevance --run DIR`: per-agent credit of a trained run (see
+cluster/inspect_relevance.py), as JSON, PNG and an animated GIF of one battle."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from cluster.cli_errors import UsageError
+from cluster.commands import add_command
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = add_command(
+        sub,
+        "inspect",
+        "Look inside trained runs; writes what it finds next to them (RUN/relevance/ by default).",
+    )
+    isub = p.add_subparsers(dest="inspect_command", required=True, metavar="WHAT")
+    r = add_command(
+        isub,
+        "relevance",
+        "Show who gets the credit (RDN's LRP shares, VDN's utilities, QMIX's mixer "
+        "gradients) over greedy episodes of a trained run; prints a JSON summary and writes "
+        "relevance.json, relevance.png and relevance.gif to --out.",
+    )
+    r.add_argument(
+        "--run",
+        required=True,
+        help="a `credit train` output folder, or a checkpoint folder "
+        "(e.g. OUT/checkpoints/<env>__<algo> of `credit repro ... --checkpoints`)",
+    )
+    r.add_argument("--episodes", type=int, default=8, help="greedy episodes to play (8)")
+    r.add_argument("--member", type=int, default=0, help="seed of a seed-batched checkpoint (0)")
+    r.add_argument("--seed", type=int, default=0, help="env seed of the episodes (0)")
+    r.add_argument("--gif-episode", type=int, default=0, help="which episode the GIF shows")
+    r.add_argument("--max-frames", type=int, default=150, help="GIF frames at most (150)")
+    r.add_argument("--out", help="output folder (default RUN/relevance)")
+    r.set_defaults(func=cmd_relevance)
+
+
+def cmd_relevance(args: argparse.Namespace) -> int:
+    from cluster.inspect_relevance import inspect
+
+    if args.episodes < 1 or args.max_frames < 1:
+        raise UsageError("--episodes and --max-frames must be >= 1")
+    run = Path(args.run)
+    out = Path(args.out) if args.out else run / "relevance"
+    summary = inspect(
+        run, out, args.episodes, args.member, args.seed, args.gif_episode, args.max_frames
+    )
+    print(json.dumps({k: summary[k] for k in ("algo", "env", "credit", "win_rate", "groups")}))
+    print(f"results in {out}: relevance.json, relevance.png, relevance.gif")
+    return 0

@@ -1,0 +1,87 @@
+"""`credit repro redundancy`: the seed's Figs. 5.6-5.9 and the final-win-rate chart from
+curves, the generated maps of --zerglings, and a tiny end-to-end run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from cluster.cli import main
+from cluster.repro_curves import Curve
+from cluster.repro_redundancy import final_stats, ordered, write_figures, zergling_envs
+
+
+def _curve(algo: str, env: str, won: list[list[float]]) -> Curve:
+    k = len(won)
+    return Curve(algo, env, [1000 * (i + 1) for i in range(k)], won, won, 1.0)
+
+
+def test_maps_run_from_most_to_fewest_zerglings_and_generated_ones_fit_in():
+    envs = ["skirmish/bane_no_z", "skirmish/bane_z30", "skirmish/bane_vs_bane", "skirmish/bane_med"]
+    assert ordered(envs) == [
+        "skirmish/bane_z30",
+        "skirmish/bane_vs_bane",
+        "skirmish/bane_med",
+        "skirmish/bane_no_z",
+    ]
+    assert zergling_envs("0, 5,30") == ["skirmish/bane_z0", "skirmish/bane_z5", "skirmish/bane_z30"]
+
+
+def test_figures_and_their_numbers(tmp_path):
+    # 12 evaluations x 4 seeds; the last 10 evaluations of seed k win k / 4 of the time
+    won = [[0.0] * 4] * 2 + [[0.0, 0.25, 0.5, 0.75]] * 10
+    curves = [
+        _curve("rdn", "skirmish/bane_vs_bane", won),
+        _curve("rdn", "skirmish/bane_no_z", [[1.0] * 4] * 12),
+        _curve("vdn", "skirmish/bane_vs_bane", [[0.5, 0.5, 1.0, 1.0]] * 12),
+    ]
+    summary: dict = {}
+    files = write_figures(
+        curves, ["skirmish/bane_no_z", "skirmish/bane_vs_bane"], tmp_path, summary
+    )
+    assert files == [f"redundancy_{k}.png" for k in ("median", "variance", "p75", "p25", "final")]
+    for f in files:
+        assert (tmp_path / f).stat().st_size > 10_000
+    red = summary["redundancy"]
+    assert red["zerglings"] == {"skirmish/bane_vs_bane": 20, "skirmish/bane_no_z": 0}
+    cell = red["curves"]["skirmish/bane_vs_bane"]["rdn"]
+    assert cell["median"][-1] == pytest.approx(0.375)
+    assert cell["variance"][-1] == pytest.approx(np.var([0.0, 0.25, 0.5, 0.75]), abs=1e-4)
+    assert cell["p75"][-1] == pytest.approx(0.5625) and cell["p25"][-1] == pytest.approx(0.1875)
+    assert cell["median"][0] == 0.0 and cell["seeds"] == 4
+    final = red["final"]["rdn"]
+    assert final["zerglings"] == [20, 0]  # most zerglings first
+    assert final["median"] == [pytest.approx(0.375), 1.0]
+    assert final["per_seed"][0] == [0.0, 0.25, 0.5, 0.75]
+    assert red["final"]["vdn"]["p25"] == [0.5] and red["final"]["vdn"]["p75"] == [1.0]
+
+
+def test_final_stats_use_the_last_ten_evaluations():
+    won = [[1.0, 1.0]] * 5 + [[0.0, 0.5]] * 10
+    got = final_stats([_curve("iql", "skirmish/bane_small", won)], ["skirmish/bane_small"])
+    assert got["iql"]["per_seed"] == [[0.0, 0.5]] and got["iql"]["zerglings"] == [10]
+
+
+@pytest.mark.parametrize("bad", ["x", "5,-1", "65"])
+def test_bad_zerglings_exit_2(bad, capsys, tmp_path):
+    assert main(["repro", "redundancy", "--zerglings", bad, "--out", str(tmp_path)]) == 2
+    assert "--zerglings takes whole numbers" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_tiny_redundancy_run_writes_every_figure_summary_and_checkpoints(tmp_path):
+    out = tmp_path / "red"
+    argv = ["repro", "redundancy", "--envs", "skirmish/bane_no_z", "--zerglings", "1"]
+    argv += ["--algos", "vdn,rdn", "--seeds", "2", "--t-max", "300", "--test-interval", "150"]
+    argv += ["--workers", "1", "--set", "run.test_episodes=2", "--set", "replay.batch_size=4"]
+    assert main([*argv, "--checkpoints", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["skirmish/bane_z1"]) == {"vdn", "rdn"}
+    red = summary["redundancy"]
+    assert list(red["curves"]) == ["skirmish/bane_z1", "skirmish/bane_no_z"]
+    assert red["final"]["rdn"]["zerglings"] == [1, 0]
+    for name in ("median", "variance", "p75", "p25", "final", "bane_z1", "bane_no_z"):
+        assert (out / f"redundancy_{name}.png").stat().st_size > 0
+    assert (out / "checkpoints" / "skirmish-bane_z1__rdn" / "learner.pt").exists()
+    rows = [json.loads(x) for x in (out / "evals" / "skirmish-bane_z1__rdn.jsonl").open()]
+    assert all(len(r["won"]) == 2 for r in rows)
