@@ -4,6 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= runs/demo
+# e.g. DEMO_ARGS=--no-wait (do not keep the dashboard up waiting for Ctrl-C)
+DEMO_ARGS ?=
 
 .PHONY: venv demo test test-slow lint format clean
 
@@ -19,7 +21,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/credit demo --out $(DEMO_OUT)
+	$(BIN)/credit demo --out $(DEMO_OUT) $(DEMO_ARGS)
 
 test: $(STAMP)
 	$(BIN)/ruff check .

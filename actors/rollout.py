@@ -101,8 +101,20 @@ class RolloutWorker:
             episodes.extend(self.run_round(t_env, greedy).episodes)
         return episodes
 
-    def run_round(self, t_env: int | None = None, greedy: bool = False) -> RoundResult:
-        """Reset every env and play one episode in each until all have ended."""
+    def run_round(
+        self,
+        t_env: int | None = None,
+        greedy: bool = False,
+        on_step: Callable[[], None] | None = None,
+    ) -> RoundResult:
+        """Reset every env and play one episode in each until all have ended.
+
+        Args:
+            t_env: the env-step count that sets epsilon (default: this worker's own count).
+            greedy: act greedily (evaluation) instead of exploring.
+            on_step: called after the reset and after every step of the envs, e.g. to take
+                a snapshot of a battle for a replay.
+        """
         info, venv = self.info, self.venv
         k, n, a = venv.num_envs, info.n_agents, info.n_actions
         e, m = self.n_ensemble, venv.num_envs // self.n_ensemble
@@ -117,6 +129,8 @@ class RolloutWorker:
         length = np.zeros(k, np.int64)
         won = np.zeros(k, bool)
         venv.reset()
+        if on_step:
+            on_step()
         active = np.ones(k, bool)
         h = self.agent.init_hidden(e, m * n)
         last = torch.zeros(e, m * n, a)
@@ -136,6 +150,8 @@ class RolloutWorker:
                 last = F.one_hot(act, a).float()
                 acts = act.view(k, n).numpy()
                 r, done, infos = venv.step(acts, active)
+                if on_step:
+                    on_step()
                 actions[:, t], reward[:, t] = acts, np.where(active, r, 0.0)
                 for j in np.flatnonzero(active & done):
                     terminated[j, t] = not infos[j].get("episode_limit", False)

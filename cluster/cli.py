@@ -24,6 +24,16 @@ from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")
 
+DESCRIPTION = (
+    "credit trains cooperative multi-agent reinforcement learning algorithms (RDN, EM-CAC "
+    "and their baselines) on matrix games, the built-in skirmish simulator or StarCraft II "
+    "SMAC, in one process or on a local multi-process Ray cluster. Start with `credit demo`. "
+    "Each command below says what it writes; `credit COMMAND --help` lists its options. "
+    "Training runs write under --out (runs/... by default); run-time state (the Ray "
+    "cluster, Prometheus, the file-SD links of live runs) lives in ~/.credit/, or in "
+    "$CREDIT_STATE_DIR when that is set."
+)
+
 COMMANDS = [
     demo_cmd,
     train_cmd,
@@ -39,8 +49,8 @@ COMMANDS = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="credit", description=__doc__.split("\n")[0])
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser = argparse.ArgumentParser(prog="credit", description=DESCRIPTION)
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS:
         module.register(sub)

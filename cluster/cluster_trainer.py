@@ -23,7 +23,13 @@ from buffer_service.episode import Episode, EpisodeBatch
 from cluster.batches import BatchPairer
 from cluster.buffer_proc import BufferProcess
 from cluster.loop_stats import LoopStats
-from cluster.metrics import LearnerMetrics, default_sd_file, serve, write_file_sd
+from cluster.metrics import (
+    LearnerMetrics,
+    register_run_sd,
+    serve,
+    unregister_run_sd,
+    write_file_sd,
+)
 from cluster.ray_actors import Coordinator, RolloutActor
 from cluster.trainer import EvalRecord, Progress, TrainerCore, write_json
 
@@ -67,6 +73,7 @@ class ClusterTrainer:
         self.dropped_stale = 0
         self.metrics = LearnerMetrics() if self.ccfg.metrics else None
         self.endpoints: list[tuple[str, int]] = []
+        self.sd_link: Path | None = None  # this run's entry in cluster.metrics.runs_sd_dir()
         self.learner_endpoint: tuple[str, int] | None = None
         self.described_buffer_restarts = 0
         self.stats = LoopStats()
@@ -125,8 +132,10 @@ class ClusterTrainer:
 
     def _describe(self) -> None:
         """Write OUT/cluster.json (pids and endpoints of the learner, buffer service and actors)
-        and, with metrics on, the Prometheus file-SD files listing every exporter. A restarted
-        actor process has a new pid and port, so this runs again after restarts."""
+        and, with metrics on, OUT/targets.json: the run's own Prometheus file-SD file listing
+        every exporter, labelled with the run's folder, linked into the machine's folder of
+        live runs (`cluster.metrics.runs_sd_dir`) so one `credit metrics up` scrapes every run.
+        A restarted actor process has a new pid and port, so this runs again after restarts."""
         described = [self._ask(a.describe) for a in self.actors]
         topology = {
             "learner": {
@@ -146,14 +155,20 @@ class ClusterTrainer:
         self.endpoints = [self.learner_endpoint, *(tuple(d["metrics"]) for d in described)]
         if self.buffer.metrics_port:
             self.endpoints.append((self.buffer.host, int(self.buffer.metrics_port)))
-        for path in (default_sd_file(), self.out / "targets.json"):
-            write_file_sd(path, self.endpoints, {"job": "credit"})
+        labels = {"job": "credit", "run": str(self.out.resolve())}
+        write_file_sd(self.out / "targets.json", self.endpoints, labels)
+        if self.sd_link is None:
+            self.sd_link = register_run_sd(self.out / "targets.json")
 
     def _start_loop(self, i: int) -> None:
         self.loops[self.actors[i].run.remote()] = i
 
     def shutdown(self) -> None:
-        """Stop the actors' loops, then the actors and the buffer service."""
+        """Stop the actors' loops, then the actors and the buffer service; take the run out
+        of the machine's live runs."""
+        if self.sd_link is not None:
+            unregister_run_sd(self.sd_link)
+            self.sd_link = None
         if self.coordinator is not None:
             ray.get(self.coordinator.request_stop.remote())
             # Loops blocked on back-pressure may not notice for a while; their unacknowledged

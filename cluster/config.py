@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
@@ -23,9 +24,9 @@ class ConfigError(ValueError):
     """A configuration problem; the message names the key, file or value at fault."""
 
 
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Parse a YAML mapping; errors name the file and line."""
-    p = Path(path)
+def read_yaml(path: str | Path | Traversable) -> dict[str, Any]:
+    """Parse a YAML mapping (a path, or a package resource); errors name the file and line."""
+    p = path if isinstance(path, Traversable) else Path(path)
     try:
         text = p.read_text()
     except OSError as e:

@@ -24,6 +24,7 @@ The launcher lists every endpoint in a Prometheus file-service-discovery file wi
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -327,9 +328,95 @@ def default_state_dir() -> Path:
     return Path(os.environ.get("CREDIT_STATE_DIR") or Path.home() / ".credit")
 
 
-def default_sd_file() -> Path:
-    """The file-SD file the launcher writes and `credit metrics up`/`dashboard` read."""
-    return default_state_dir() / "metrics" / "targets.json"
+def runs_sd_dir() -> Path:
+    """Where every live cluster run on this machine links its own file-SD file (one
+    `<run folder name>-<hash>.json` link per run, pointing at the run's OUT/targets.json);
+    `credit metrics up` and `credit dashboard` read every file in it."""
+    return default_state_dir() / "metrics" / "runs"
+
+
+def runs_sd_glob() -> str:
+    """The file_sd glob over `runs_sd_dir()` that Prometheus is given."""
+    return str(runs_sd_dir() / "*.json")
+
+
+def register_run_sd(targets_file: str | Path) -> Path:
+    """Link a run's own file-SD file into `runs_sd_dir()`, so that whatever scrapes "every
+    live run" finds it; prunes the links of runs that are gone first. The same file always
+    gets the same link (replaced atomically).
+
+    Returns:
+        The link.
+    """
+    target = Path(targets_file).resolve()
+    prune_run_sd()
+    digest = hashlib.sha1(str(target).encode()).hexdigest()[:12]
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", target.parent.name) or "run"
+    link = runs_sd_dir() / f"{name}-{digest}.json"
+    link.parent.mkdir(parents=True, exist_ok=True)
+    tmp = link.with_name(f".{link.name}.tmp")  # not matched by the *.json glob
+    tmp.unlink(missing_ok=True)
+    tmp.symlink_to(target)
+    os.replace(tmp, link)
+    return link
+
+
+def unregister_run_sd(link: str | Path) -> None:
+    """Remove a run's link (the run has ended); its own targets file stays."""
+    Path(link).unlink(missing_ok=True)
+
+
+def _run_alive(targets_file: Path) -> bool:
+    """Whether the run that wrote `targets_file` still runs: its folder's cluster.json names
+    a learner pid that is alive (a run without cluster.json yet counts as alive)."""
+    if not targets_file.exists():
+        return False
+    try:
+        pid = int(json.loads((targets_file.parent / "cluster.json").read_text())["learner"]["pid"])
+    except FileNotFoundError:
+        return True
+    except (ValueError, KeyError, TypeError):
+        return False
+    return pid_alive(pid)
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` exists and is not a zombie (an exited child never reaped)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def prune_run_sd() -> list[Path]:
+    """Remove the links of runs that are gone (killed, or their folder deleted); returns them."""
+    folder = runs_sd_dir()
+    removed = []
+    for link in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        if not _run_alive(link.resolve()):
+            link.unlink(missing_ok=True)
+            removed.append(link)
+            log.info("dropped the file-SD link of a run that is gone: %s", link)
+    return removed
+
+
+def read_runs_sd() -> list[tuple[str, int]]:
+    """Every (host, port) of every live run's file-SD file (a run's broken file is skipped
+    with a warning, so one bad run does not hide the others)."""
+    folder = runs_sd_dir()
+    out: list[tuple[str, int]] = []
+    for link in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            out += read_file_sd(link)
+        except ValueError as e:
+            log.warning("skipping %s: %s", link, e)
+    return out
 
 
 def write_file_sd(

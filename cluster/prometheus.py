@@ -1,11 +1,13 @@
-"""Run the real `prometheus` binary on loopback, scraping the targets of a file-SD file.
+"""Run the real `prometheus` binary on loopback, scraping every live credit run on the machine
+(each run's own file-SD file, linked into `cluster.metrics.runs_sd_dir()`), or one file-SD
+file or glob.
 
 `credit metrics up` calls `start`, `credit metrics down` calls `stop`. The server runs detached
 (its own session) so it outlives the command; its pid, port and URL are kept in
 `<state_dir>/prometheus.json`. `query` and `query_range` read its HTTP API (tests and the
 dashboard use them).
 
-    cfg = PrometheusConfig(sd_file="~/.credit/metrics/targets.json", port=9090)
+    cfg = PrometheusConfig(port=9090)   # sd_file "": every live run (~/.credit/metrics/runs/*.json)
     state = start(cfg)              # waits for /-/ready
     query(state.url, "sum(rate(credit_env_steps_total[10s]))")
     stop(cfg.state_dir)
@@ -32,7 +34,7 @@ from typing import Any
 import yaml
 
 from cluster.config import ConfigError
-from cluster.metrics import default_sd_file, default_state_dir
+from cluster.metrics import default_state_dir, pid_alive, prune_run_sd, runs_sd_glob
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +50,10 @@ class PrometheusConfig:
     """How to run the local Prometheus.
 
     Attributes:
-        sd_file: file_sd JSON listing the exporters (the launcher writes it); "" = the default
-            `~/.credit/metrics/targets.json`. Created empty when missing.
+        sd_file: what to scrape: a file_sd JSON file listing exporters (created empty when
+            missing), or a glob of such files (`*` in the last path element, as Prometheus
+            allows); "" = every live run on this machine, `<state>/metrics/runs/*.json`
+            (each cluster run links its OUT/targets.json there while it runs).
         port: HTTP port on 127.0.0.1; 0 picks a free one.
         host: address to bind; loopback unless you mean to expose it.
         scrape_interval_s: seconds between scrapes of each target (1-2 s suits live charts).
@@ -86,7 +90,9 @@ class PrometheusConfig:
         return dataclasses.replace(
             self,
             state_dir=str(state),
-            sd_file=str(Path(self.sd_file or default_sd_file()).expanduser().resolve()),
+            sd_file=(
+                str(Path(self.sd_file).expanduser().absolute()) if self.sd_file else runs_sd_glob()
+            ),
             data_dir=str(Path(self.data_dir or state / "data").expanduser().resolve()),
         )
 
@@ -153,26 +159,12 @@ def read_state(state_dir: str | Path) -> PrometheusState | None:
         ) from None
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    # A zombie child (never reaped) counts as gone.
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
-    except (OSError, IndexError):
-        return True
-
-
 def _is_prometheus(pid: int) -> bool:
     # Guard against a recycled pid: only signal a process whose command is prometheus.
     try:
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0]
     except OSError:
-        return _alive(pid)
+        return pid_alive(pid)
     return b"prometheus" in os.path.basename(cmd)
 
 
@@ -221,14 +213,17 @@ def start(cfg: PrometheusConfig) -> PrometheusState:
     binary = find_binary(cfg.binary)
     state_dir = Path(cfg.state_dir)
     old = read_state(state_dir)
-    if old is not None and _alive(old.pid) and _is_prometheus(old.pid):
+    if old is not None and pid_alive(old.pid) and _is_prometheus(old.pid):
         raise ConfigError(
             f"prometheus already running (pid {old.pid}, {old.url}); `credit metrics down` first"
         )
     state_dir.mkdir(parents=True, exist_ok=True)
     Path(cfg.data_dir).mkdir(parents=True, exist_ok=True)
     sd = Path(cfg.sd_file)
-    if not sd.exists():
+    if "*" in sd.name:  # a glob: its folder must exist for Prometheus to watch it
+        sd.parent.mkdir(parents=True, exist_ok=True)
+        prune_run_sd()
+    elif not sd.exists():
         sd.parent.mkdir(parents=True, exist_ok=True)
         sd.write_text("[]\n")
     config_file = state_dir / "prometheus.yml"
@@ -271,7 +266,7 @@ def _gone(pid: int) -> bool:
     try:
         return os.waitpid(pid, os.WNOHANG)[0] == pid
     except ChildProcessError:  # not our child: its parent reaps it
-        return not _alive(pid)
+        return not pid_alive(pid)
 
 
 def _wait_gone(pid: int, timeout_s: float) -> bool:
@@ -307,7 +302,7 @@ def stop(state_dir: str | Path = "") -> PrometheusState | None:
     state = read_state(state_dir)
     if state is None:
         return None
-    if _alive(state.pid) and _is_prometheus(state.pid):
+    if pid_alive(state.pid) and _is_prometheus(state.pid):
         _terminate(state.pid)
     else:
         log.info("prometheus pid %d is not running any more", state.pid)
@@ -321,7 +316,7 @@ def running_url(state_dir: str | Path = "") -> str | None:
         state = read_state(Path(state_dir or default_state_dir() / "metrics"))
     except ConfigError:
         return None
-    if state is None or not _alive(state.pid):
+    if state is None or not pid_alive(state.pid):
         return None
     return state.url
 

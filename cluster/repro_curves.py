@@ -211,10 +211,12 @@ def plot(
     env: str,
     path: Path,
     diagnostics: tuple[tuple[str, str], ...] = (),
+    title: str | None = None,
 ) -> None:
     """Median test win rate and test return against env steps, and win rate against wall
     time, with the 25-75 percentile band, one line per algo; then one panel per learner
-    diagnostic (key, label) at each evaluation (means over seeds)."""
+    diagnostic (key, label) at each evaluation (means over seeds). `title` replaces the
+    default "<env>: median of N seeds" heading."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -264,7 +266,7 @@ def plot(
             ax.legend(loc="upper left")
     flat[0].set_ylim(-0.02, 1.02)
     flat[2].set_ylim(-0.02, 1.02)
-    fig.suptitle(f"{env}: median of {seeds} seeds, 25-75 percentile band")
+    fig.suptitle(title or f"{env}: median of {seeds} seeds, 25-75 percentile band")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -1,19 +1,24 @@
 """The configuration of a training run: one frozen dataclass per component, loaded from the
-algorithm's and env family's YAML in configs/, user files and `--set` overrides."""
+shipped YAML layers (the `configs/` folder of the installed `cluster` package, found through
+importlib.resources), user files and `--set` overrides."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from importlib import resources
+from importlib.resources.abc import Traversable
+from typing import Any, Literal
 
+import torch
+
+from actors.envs.base import EnvError
 from actors.envs.registry import get_spec
 from actors.policy import ExplorationConfig
 from buffer_service.config import RateLimiterConfig, TableConfig
 from cluster.config import ConfigError, build, deep_merge, parse_overrides, read_yaml, to_dict
 from learner.registry import get_algo
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_PACKAGE = "cluster"  # the shipped layers are package data: cluster/configs/
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,14 @@ class RunConfig:
         test_interval: env steps between greedy evaluations.
         test_episodes: greedy episodes per evaluation.
         save_interval: env steps between checkpoints (0: only at the end).
-        device: torch device of the learner.
+        device: torch device of the learner ("cpu", "cuda", "cuda:1", ...). Rollout and
+            evaluation workers always act on the CPU.
+        acting_weights: what the learner process's own workers (local-mode rollouts, greedy
+            evaluation) act with: "shared", the learner's agent module itself (CPU learners
+            only); "copy", a CPU copy of it, refreshed from `learner.get_weights()` whenever
+            the learner's version has moved on (what a cuda learner needs; on the CPU it acts
+            exactly as "shared" does); "auto", shared on the CPU, a copy otherwise. Ray
+            rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
     """
@@ -101,9 +113,19 @@ class RunConfig:
     test_episodes: int = 20
     save_interval: int = 0
     device: str = "cpu"
+    acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
 
     def validate(self) -> None:
+        try:
+            device = torch.device(self.device)
+        except RuntimeError as e:
+            raise ValueError(f"device {self.device!r} is not a torch device ({e})") from None
+        if self.acting_weights == "shared" and device.type != "cpu":
+            raise ValueError(
+                f"acting_weights=shared needs device=cpu (workers act on CPU tensors), got "
+                f"device={self.device!r}; use acting_weights=copy or auto"
+            )
         for name in ("t_max", "num_envs", "test_interval", "test_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -196,20 +218,48 @@ SECTIONS = {
 }
 
 
-def default_files(algo: str, env_id: str) -> list[Path]:
-    """The shipped YAML layers for (algo, env), later ones winning, each only if present:
-    envs/<family>.yaml (the env family's schedule, evaluation and value-family data flow),
-    algos/<algo>.yaml (the algorithm's own hyper-parameters, including data flow it fixes,
-    e.g. the policy-gradient family's 4 new episodes per step and 32-episode cycling buffer),
-    envs/<family>.<algo family>.yaml (what one algorithm family needs on that env family, e.g.
-    the value family's measured settings on SMAC-like maps), envs/<family>/<name>.yaml (what
-    one map needs)."""
+def config_root() -> Traversable:
+    """The shipped `configs/` folder of the installed `cluster` package.
+
+    Raises:
+        ConfigError: the folder is not there (an install that left the package data out).
+    """
+    root = resources.files(CONFIG_PACKAGE) / "configs"
+    if not root.is_dir():
+        raise ConfigError(
+            f"the shipped configs are missing: {root} does not exist in the installed "
+            f"{CONFIG_PACKAGE!r} package; reinstall credit (`pip install .` copies "
+            "cluster/configs/ as package data)"
+        )
+    return root
+
+
+def default_files(algo: str, env_id: str) -> list[Traversable]:
+    """The shipped YAML layers for (algo, env), later ones winning.
+
+    Required (a missing one is a ConfigError naming it): envs/<family>.yaml (the env
+    family's schedule, evaluation and value-family data flow) and algos/<algo>.yaml (the
+    algorithm's own hyper-parameters, including data flow it fixes, e.g. the policy-gradient
+    family's 4 new episodes per step and 32-episode cycling buffer). Optional, used when
+    present: envs/<family>.<algo family>.yaml (what one algorithm family needs on that env
+    family, e.g. the value family's measured settings on SMAC-like maps) and
+    envs/<family>/<name>.yaml (what one map needs).
+    """
     family, _, name = env_id.partition("/")
     algo_family = get_algo(algo).family
-    candidates = [CONFIG_DIR / "envs" / f"{family}.yaml", CONFIG_DIR / "algos" / f"{algo}.yaml"]
-    candidates.append(CONFIG_DIR / "envs" / f"{family}.{algo_family}.yaml")
-    candidates.append(CONFIG_DIR / "envs" / family / f"{name}.yaml")
-    return [p for p in candidates if p.exists()]
+    root = config_root()
+    required = [root / "envs" / f"{family}.yaml", root / "algos" / f"{algo}.yaml"]
+    for layer in required:
+        if not layer.is_file():
+            raise ConfigError(
+                f"shipped config layer {layer} is missing: every env family needs "
+                f"envs/<family>.yaml and every algorithm algos/<algo>.yaml under {root}"
+            )
+    optional = [
+        root / "envs" / f"{family}.{algo_family}.yaml",
+        root / "envs" / family / f"{name}.yaml",
+    ]
+    return required + [p for p in optional if p.is_file()]
 
 
 def load_train_config(
@@ -225,10 +275,15 @@ def load_train_config(
     user = deep_merge(user, parse_overrides(list(overrides)))
     algo = algo or user.get("algo_name") or "rdn"
     env_id = env_id or user.get("env", {}).get("id") or EnvConfig.id
+    # Fail on an unknown algo or env before looking for its YAML layers.
     try:
-        get_algo(algo)  # fail before looking for its YAML
+        get_algo(algo)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    try:
+        get_spec(env_id)
+    except EnvError as e:
+        raise ConfigError(f"env: {e}") from None
     data: dict[str, Any] = {}
     for path in default_files(algo, env_id):
         data = deep_merge(data, read_yaml(path))

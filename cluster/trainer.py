@@ -6,6 +6,7 @@ the same tensors, each with its own envs, replay and random streams; see learner
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -24,6 +25,7 @@ from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
 from buffer_service.local import LocalBuffer
+from cluster.config import ConfigError
 from cluster.run_config import TrainConfig, data_plan
 from learner.registry import Learner, get_algo
 
@@ -56,23 +58,32 @@ class EvalRecord:
 
 
 class Progress:
-    """A one-line progress bar on a terminal; periodic log lines otherwise."""
+    """A one-line progress bar on a terminal, log lines otherwise (at most one per `every_s`),
+    each with the env steps per second since the previous line."""
 
-    def __init__(self, total: int, every_s: float = 10.0):
+    def __init__(self, total: int, every_s: float = 5.0):
         self.total, self.every_s = total, every_s
         self.tty = sys.stderr.isatty()
         self.last = 0.0
+        self.rate_from: tuple[int, float] | None = None  # (done, monotonic time) of the last line
 
     def update(self, done: int, text: str) -> None:
         now = time.monotonic()
+        rate = ""
+        if self.rate_from is not None and now > self.rate_from[1]:
+            per_s = (done - self.rate_from[0]) / (now - self.rate_from[1])
+            rate = f" | {per_s:,.0f} env steps/s"
         if self.tty:
             frac = min(1.0, done / self.total)
             bar = "#" * int(30 * frac)
-            sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}% {text}")
+            sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}% t_env {done:,} {text}{rate}\x1b[K")
             sys.stderr.flush()
         elif now - self.last >= self.every_s:
-            log.info("t_env %d/%d %s", done, self.total, text)
+            log.info("t_env %d/%d %s%s", done, self.total, text, rate)
             self.last = now
+        else:
+            return
+        self.rate_from = (done, now)
 
     def close(self) -> None:
         if self.tty:
@@ -104,9 +115,19 @@ class TrainerCore:
             cfg.env.id, n_ensemble * run.test_episodes, seed=run.seed + 10_000, **cfg.env.args
         )
         self.info = self.test_venv.info
+        device = torch.device(run.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(
+                f"run.device={run.device!r}, but this torch sees no CUDA device "
+                f"(torch {torch.__version__}, cuda available: False); use run.device=cpu"
+            )
         self.learner: Learner = self.spec.build(
             cfg.algo, self.info.schema(), n_ensemble, run.device
         )
+        mode = run.acting_weights
+        if mode == "auto":
+            mode = "shared" if device.type == "cpu" else "copy"
+        self.acting_weights = mode
         self.test_worker = self.local_worker(self.test_venv, run.seed + 1)
         self.t_env = 0
         self.episodes = 0
@@ -140,17 +161,24 @@ class TrainerCore:
         return means
 
     def local_worker(self, venv, seed: int, actor_id: int = 0) -> RolloutWorker:
-        """A worker acting with the learner's own agent module (no weight copy; `follow` keeps
-        its policy_version tags right)."""
+        """A worker in this process: acting with the learner's own agent module
+        (acting_weights "shared") or with a CPU copy of it ("copy"); `sync_worker` before each
+        round keeps its weights and policy_version tags current."""
+        agent = self.learner.agent
+        if self.acting_weights == "copy":
+            # deepcopy, not a fresh build: building would draw from torch's global RNG.
+            agent = copy.deepcopy(agent).to("cpu").requires_grad_(False)
         return RolloutWorker(
-            venv,
-            self.learner.agent,
-            self.learner.policy_kind,
-            self.cfg.exploration,
-            self.E,
-            actor_id,
-            seed,
+            venv, agent, self.learner.policy_kind, self.cfg.exploration, self.E, actor_id, seed
         )
+
+    def sync_worker(self, worker: RolloutWorker) -> None:
+        """Bring a `local_worker` to the learner's current version: a shared module only needs
+        the version tag; a copy loads the learner's weights (CPU numpy arrays) when newer."""
+        if self.acting_weights == "shared":
+            worker.follow(self.learner.updates)
+        elif self.learner.updates > worker.version:
+            worker.set_weights(self.learner.get_weights())
 
     @property
     def wall_s(self) -> float:
@@ -158,7 +186,7 @@ class TrainerCore:
 
     def evaluate(self) -> list[EvalRecord]:
         """Greedy episodes for every member; one record per member."""
-        self.test_worker.follow(self.learner.updates)
+        self.sync_worker(self.test_worker)
         result = self.test_worker.run_round(t_env=self.t_env, greedy=True)
         per = self.cfg.run.test_episodes
         has_wins = self.info.has_wins
@@ -192,8 +220,7 @@ class TrainerCore:
             if on_eval:
                 on_eval(records)
             if bar:
-                mean = np.mean([r.test_return_mean for r in records])
-                bar.update(self.t_env, f"test_return {mean:.3f} updates {self.learner.updates}")
+                bar.update(self.t_env, self.progress_text(records))
         if (
             run.save_interval
             and self.checkpoint_dir
@@ -201,6 +228,13 @@ class TrainerCore:
         ):
             self.last_save_t = self.t_env
             self.save(self.checkpoint_dir, extra_state() if extra_state else {})
+
+    def progress_text(self, records: list[EvalRecord]) -> str:
+        """The greedy evaluation's figures (means over members) for a progress line."""
+        text = f"test_return {np.mean([r.test_return_mean for r in records]):.2f}"
+        if self.info.has_wins:
+            text = f"win rate {np.mean([r.test_won_mean for r in records]):.2f} " + text
+        return f"{text} updates {self.learner.updates}"
 
     # -- checkpoints -------------------------------------------------------------------------
     def save(self, path: Path, extra: dict | None = None) -> None:
@@ -239,8 +273,10 @@ class TrainerCore:
             and (path.with_name(path.name + ".old") / "trainer.pt").exists()
         ):
             path = path.with_name(path.name + ".old")  # a crash between the two renames of save()
-        self.learner.load_state_dict(torch.load(path / "learner.pt", weights_only=False))
-        state = torch.load(path / "trainer.pt", weights_only=False)
+        device = self.cfg.run.device  # a checkpoint saved on another device loads here
+        learner_state = torch.load(path / "learner.pt", weights_only=False, map_location=device)
+        self.learner.load_state_dict(learner_state)
+        state = torch.load(path / "trainer.pt", weights_only=False, map_location="cpu")
         self.t_env, self.episodes = state["t_env"], state["episodes"]
         self.last_test_t, self.last_save_t = state["last_test_t"], state["last_save_t"]
         self.wall_offset = state["wall_s"]
@@ -282,7 +318,7 @@ class LocalTrainer:
         core, run = self.core, self.core.cfg.run
         bar = Progress(run.t_max) if progress else None
         while core.t_env < run.t_max and not (stop and stop()):
-            self.worker.follow(core.learner.updates)
+            core.sync_worker(self.worker)
             result = self.worker.run_round(t_env=core.t_env)
             per = run.num_envs
             for k, buf in enumerate(self.buffers):

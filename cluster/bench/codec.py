@@ -20,12 +20,18 @@ import numpy as np
 from buffer_service import codec
 from buffer_service.episode import EPISODE_ARRAYS, Episode, EpisodeSchema
 from cluster.bench.common import emit
+from cluster.commands import add_command
 
 BANE = EpisodeSchema(n_agents=24, obs_dim=336, state_dim=984, n_actions=30, max_t=200)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("codec", help="msgpack codec encode/decode vs memcpy (GB/s)")
+    p = add_command(
+        sub,
+        "codec",
+        "Time the msgpack episode codec against memcpy and print GB/s as JSON; --out also"
+        " writes that JSON to a file.",
+    )
     p.add_argument("--batch", type=int, default=32, help="episodes per frame")
     p.add_argument("--t", type=int, default=200, help="transitions per episode")
     p.add_argument("--repeats", type=int, default=5, help="timed repetitions (best is kept)")

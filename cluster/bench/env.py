@@ -31,10 +31,16 @@ import numpy as np
 
 from actors.envs.registry import make_vec_env
 from cluster.bench.common import emit
+from cluster.commands import add_command
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("env", help="env-steps/s under random valid actions (optionally vs SMAX)")
+    p = add_command(
+        sub,
+        "env",
+        "Measure env steps per second under random valid actions (optionally against "
+        "JaxMARL SMAX) and print JSON; --out also writes it.",
+    )
     p.add_argument("--env", default="skirmish/3m", help="registered env id")
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--steps", type=int, default=1000, help="vector steps per timed block")

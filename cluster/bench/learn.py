@@ -20,12 +20,18 @@ import torch
 
 from cluster.bench.common import emit
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.run_config import load_train_config
 from cluster.trainer import LocalTrainer
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("learn", help="env steps and wall time for seeds to reach a win rate")
+    p = add_command(
+        sub,
+        "learn",
+        "Train seeds until they reach a win rate and print the env steps and wall time as"
+        " JSON; --out also writes it.",
+    )
     p.add_argument("--env", default="skirmish/3m")
     p.add_argument("--algo", default="qmix")
     p.add_argument("--target-win", type=float, default=0.95, help="greedy win rate to reach")

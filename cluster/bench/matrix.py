@@ -12,12 +12,18 @@ import time
 import torch
 
 from cluster.bench.common import emit
+from cluster.commands import add_command
 from cluster.run_config import load_train_config
 from cluster.trainer import LocalTrainer
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("matrix", help="seed-batched vs one-by-one training on a matrix game")
+    p = add_command(
+        sub,
+        "matrix",
+        "Time seed-batched against one-by-one training on a matrix game and print JSON; "
+        "--out also writes it.",
+    )
     p.add_argument("--algo", default="rdn")
     p.add_argument("--env", default="matrix/four_game")
     p.add_argument("--seeds", type=int, default=8)

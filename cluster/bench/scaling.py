@@ -38,6 +38,7 @@ from buffer_service.client import BufferClient
 from buffer_service.config import RateLimiterConfig, TableConfig
 from cluster.bench import scaling_stats as st
 from cluster.bench.common import emit
+from cluster.commands import add_command
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,12 @@ MODES = ("no_learner", "train", "transport")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("scaling", help="cluster throughput, CPU and lag against actor count")
+    p = add_command(
+        sub,
+        "scaling",
+        "Measure cluster throughput, CPU use and policy lag against the number of actors;"
+        " writes OUT/scaling.json and OUT/scaling.png.",
+    )
     p.add_argument("--env", default="skirmish/3m", help="env id")
     p.add_argument("--algo", default="rdn", help="learner algorithm")
     p.add_argument("--actors", default="1,2,4", help="comma-separated actor counts")

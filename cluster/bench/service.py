@@ -23,6 +23,7 @@ import numpy as np
 from buffer_service.client import BufferClient
 from buffer_service.episode import Episode, EpisodeSchema
 from cluster.bench.common import emit, synthetic_episode
+from cluster.commands import add_command
 
 SIZES = {
     "3m": EpisodeSchema(n_agents=3, obs_dim=30, state_dim=48, n_actions=9, max_t=60),
@@ -31,7 +32,12 @@ SIZES = {
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("service", help="buffer service inserts/s and sample latency")
+    p = add_command(
+        sub,
+        "service",
+        "Measure the buffer service's inserts per second and sample latency and print "
+        "JSON; --out also writes it.",
+    )
     p.add_argument("--env-size", choices=sorted(SIZES), default="3m", help="episode sizes")
     p.add_argument("--clients", type=int, nargs="+", default=[1, 4], help="client counts")
     p.add_argument("--inserts", type=int, default=300, help="insert requests per client")

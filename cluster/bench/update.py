@@ -25,12 +25,18 @@ from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
 from cluster.bench.common import emit
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.run_config import load_train_config
 from learner.registry import get_algo
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("update", help="learner update cost of several algorithms, one batch")
+    p = add_command(
+        sub,
+        "update",
+        "Time one learner update of several algorithms on the same batch and print JSON; "
+        "--out also writes it.",
+    )
     p.add_argument("--env", default="skirmish/3m")
     p.add_argument("--algos", default="vdn,rdn", help="comma-separated; ratios are to the first")
     p.add_argument("--batch", type=int, default=32, help="episodes per update")

@@ -15,6 +15,7 @@ from cluster.bench import matrix as matrix_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
 from cluster.bench import update as update_bench
+from cluster.commands import add_command
 
 BENCHES: list = [
     env_bench,
@@ -28,7 +29,12 @@ BENCHES: list = [
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmarks that print JSON")
+    p = add_command(
+        sub,
+        "bench",
+        "Run a benchmark; each prints one JSON object (machine, command, figures) and "
+        "writes a file only where it says so.",
+    )
     bench_sub = p.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
     for module in BENCHES:
         module.register(bench_sub)

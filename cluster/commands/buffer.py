@@ -11,6 +11,7 @@ import os
 
 from buffer_service.config import BufferConfig, RateLimiterConfig, TableConfig, default_tables
 from buffer_service.episode import EpisodeSchema
+from cluster.commands import add_command
 
 TABLE_HELP = (
     "a table as key=value pairs, repeatable, e.g. "
@@ -23,9 +24,19 @@ LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("buffer", help="the episode buffer service")
+    p = add_command(
+        sub,
+        "buffer",
+        "Serve the episode buffer over TCP, writing its log and snapshots, or check such a "
+        "folder offline and print a report.",
+    )
     bsub = p.add_subparsers(dest="buffer_command", required=True, metavar="BUFFER_COMMAND")
-    s = bsub.add_parser("serve", help="serve episodes over TCP until SIGINT/SIGTERM")
+    s = add_command(
+        bsub,
+        "serve",
+        "Serve episodes over TCP until SIGINT or SIGTERM; writes its log and snapshots to"
+        " --snapshot-dir and, with --port-file, that JSON file.",
+    )
     s.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs a token)")
     s.add_argument("--port", type=int, default=0, help="TCP port; 0 picks a free one")
     s.add_argument("--port-file", help="write {host, port, metrics_port, pid} JSON once listening")
@@ -83,8 +94,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
     s.set_defaults(func=cmd_serve)
-    v = bsub.add_parser(
-        "verify", help="check a snapshot folder offline; print its tables, episodes and damage"
+    v = add_command(
+        bsub,
+        "verify",
+        "Check a snapshot folder offline and print a JSON report of its tables, episodes "
+        "and damaged records; writes nothing.",
     )
     v.add_argument("dir", help="the service's --snapshot-dir")
     v.add_argument(

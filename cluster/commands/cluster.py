@@ -6,19 +6,38 @@ import argparse
 
 from cluster import ray_cluster
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("cluster", help="start, inspect or stop a local Ray cluster")
+    p = add_command(
+        sub,
+        "cluster",
+        "Start, inspect or stop a local Ray cluster on 127.0.0.1; its state lives in "
+        "~/.credit/cluster/.",
+    )
     csub = p.add_subparsers(dest="cluster_command", required=True, metavar="CLUSTER_COMMAND")
-    up = csub.add_parser("up", help="start a Ray head node (and its worker processes)")
+    up = add_command(
+        csub,
+        "up",
+        "Start a Ray head node and its worker processes; writes "
+        "~/.credit/cluster/state.json and the Ray token there.",
+    )
     up.add_argument("--num-cpus", type=int, default=2, help="CPUs the cluster offers (default 2)")
     up.add_argument("--port", type=int, default=6379, help="GCS port (default 6379)")
     up.add_argument("--host", default=ray_cluster.LOOPBACK, help="node address (default 127.0.0.1)")
     up.set_defaults(func=cmd_up)
-    st = csub.add_parser("status", help="show the cluster's nodes and resources")
+    st = add_command(
+        csub,
+        "status",
+        "Print the cluster's nodes and resources; writes nothing.",
+    )
     st.set_defaults(func=cmd_status)
-    dn = csub.add_parser("down", help="stop the cluster `up` started (only its processes)")
+    dn = add_command(
+        csub,
+        "down",
+        "Stop the cluster that `up` started (only its processes) and remove its state file.",
+    )
     dn.set_defaults(func=cmd_down)
 
 

@@ -2,7 +2,7 @@
 
 Source, in order: `--prometheus URL`; else `--targets`/`--sd-file` (scrape the exporters
 directly); else the Prometheus that `credit metrics up` started, if it runs; else the
-exporters listed in the default file-SD file (~/.credit/metrics/targets.json).
+exporters of every live run on this machine (the file-SD links in ~/.credit/metrics/runs/).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import functools
 import logging
 from pathlib import Path
 
+from cluster.commands import add_command
 from cluster.config import ConfigError, build
 from cluster.dashboard.server import (
     DashboardConfig,
@@ -20,7 +21,7 @@ from cluster.dashboard.server import (
     PrometheusSource,
     Source,
 )
-from cluster.metrics import default_sd_file, parse_target, read_file_sd
+from cluster.metrics import parse_target, read_file_sd, read_runs_sd, runs_sd_dir
 from cluster.prometheus import running_url
 
 # ConfigError (not cluster.cli.UsageError, which would be a circular import) -> exit code 2.
@@ -29,7 +30,11 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("dashboard", help="serve the live metrics dashboard on localhost")
+    p = add_command(
+        sub,
+        "dashboard",
+        "Serve the live metrics dashboard on 127.0.0.1 and print its URL; writes nothing.",
+    )
     src = p.add_mutually_exclusive_group()
     src.add_argument("--prometheus", metavar="URL", help="read this Prometheus (HTTP API)")
     src.add_argument("--targets", metavar="HOST:PORT,...", help="scrape these exporters")
@@ -58,6 +63,10 @@ def _sd_targets(path: Path) -> list[str]:
     return [f"{h}:{p}" for h, p in read_file_sd(path)]
 
 
+def _runs_targets() -> list[str]:
+    return [f"{h}:{p}" for h, p in read_runs_sd()]  # re-read at every scrape
+
+
 def choose_source(args: argparse.Namespace, cfg: DashboardConfig) -> Source:
     """Pick where the charts read from (see the module docstring for the order)."""
     if args.prometheus:
@@ -76,9 +85,9 @@ def choose_source(args: argparse.Namespace, cfg: DashboardConfig) -> Source:
     url = running_url(args.state_dir)
     if url:
         return PrometheusSource(url, cfg)
-    path = default_sd_file()
-    log.info("no Prometheus running; scraping the exporters listed in %s", path)
-    return ExporterSource(functools.partial(_sd_targets, path), cfg, label=str(path))
+    folder = runs_sd_dir()
+    log.info("no Prometheus running; scraping the exporters of every live run (%s)", folder)
+    return ExporterSource(_runs_targets, cfg, label=f"every live run ({folder})")
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:

@@ -9,18 +9,32 @@ import logging
 from actors.envs.base import EnvError
 from actors.envs.registry import env_ids, env_info
 from actors.envs.skirmish.spec import BANE_VARIANT_MAX
+from cluster.commands import add_command
 
 log = logging.getLogger(__name__)
 COLS = ["id", "n_agents", "n_enemies", "obs_shape", "state_shape", "n_actions", "episode_limit"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("env", help="inspect environments")
+    p = add_command(
+        sub,
+        "env",
+        "Print the registered environments, or write a GIF of one episode.",
+    )
     env_sub = p.add_subparsers(dest="env_command", required=True, metavar="ENV_COMMAND")
-    lst = env_sub.add_parser("list", help="every registered env with its sizes")
+    lst = add_command(
+        env_sub,
+        "list",
+        "Print every registered env with its sizes (a table, or JSON); writes nothing.",
+    )
     lst.add_argument("--json", action="store_true", help="print a JSON list of objects")
     lst.set_defaults(func=cmd_list)
-    ren = env_sub.add_parser("render", help="write an animated GIF of one episode")
+    ren = add_command(
+        env_sub,
+        "render",
+        "Play one episode with a scripted policy and write it to --out as an animated GIF"
+        " (or a PNG strip).",
+    )
     ren.add_argument("--env", default="skirmish/bane_vs_bane", help="a skirmish env id")
     ren.add_argument("--out", required=True, help="output .gif (or .png for a frame strip)")
     ren.add_argument(

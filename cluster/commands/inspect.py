@@ -8,14 +8,22 @@ import json
 from pathlib import Path
 
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("inspect", help="look inside trained runs")
+    p = add_command(
+        sub,
+        "inspect",
+        "Look inside trained runs; writes what it finds next to them (RUN/relevance/ by default).",
+    )
     isub = p.add_subparsers(dest="inspect_command", required=True, metavar="WHAT")
-    r = isub.add_parser(
+    r = add_command(
+        isub,
         "relevance",
-        help="who gets the credit: RDN's LRP shares, VDN's utilities, QMIX's mixer gradients",
+        "Show who gets the credit (RDN's LRP shares, VDN's utilities, QMIX's mixer "
+        "gradients) over greedy episodes of a trained run; prints a JSON summary and writes "
+        "relevance.json, relevance.png and relevance.gif to --out.",
     )
     r.add_argument(
         "--run",

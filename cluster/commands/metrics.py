@@ -5,19 +5,31 @@ from __future__ import annotations
 import argparse
 
 from cluster import prometheus as prom
+from cluster.commands import add_command
 from cluster.config import build
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("metrics", help="run a local Prometheus scraping the cluster's exporters")
+    p = add_command(
+        sub,
+        "metrics",
+        "Run a local Prometheus that scrapes every live credit run on this machine; its "
+        "config, log and samples live in ~/.credit/metrics/.",
+    )
     msub = p.add_subparsers(dest="metrics_command", required=True, metavar="METRICS_COMMAND")
     state_help = "where the pid file, generated config and log live (default ~/.credit/metrics)"
 
-    up = msub.add_parser("up", help="start prometheus on 127.0.0.1 (detached)")
+    up = add_command(
+        msub,
+        "up",
+        "Start Prometheus on 127.0.0.1, detached; writes prometheus.yml, prometheus.json "
+        "(pid, URL), its log and its samples (data/) in the state folder.",
+    )
     up.add_argument(
         "--sd-file",
         default="",
-        help="file_sd JSON listing the exporters (default ~/.credit/metrics/targets.json)",
+        help="a file_sd JSON file (or a glob of them) to scrape instead of every live run "
+        "(default: each cluster run's OUT/targets.json, linked in ~/.credit/metrics/runs/)",
     )
     up.add_argument("--port", type=int, default=9090, help="HTTP port; 0 picks a free one")
     up.add_argument("--data-dir", default="", help="TSDB folder (default <state-dir>/data)")
@@ -28,11 +40,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--retention", default="1d", help="how long samples are kept (default 1d)")
     up.set_defaults(func=cmd_up)
 
-    down = msub.add_parser("down", help="stop the prometheus that `up` started")
+    down = add_command(
+        msub,
+        "down",
+        "Stop the Prometheus that `up` started and remove its prometheus.json; the samples stay.",
+    )
     down.add_argument("--state-dir", default="", help=state_help)
     down.set_defaults(func=cmd_down)
 
-    status = msub.add_parser("status", help="print the running prometheus's URL")
+    status = add_command(
+        msub,
+        "status",
+        "Print the running Prometheus's URL (exit code 1 if none runs); writes nothing.",
+    )
     status.add_argument("--state-dir", default="", help=state_help)
     status.set_defaults(func=cmd_status)
 
@@ -50,7 +70,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         },
     )
     state = prom.start(cfg)
-    print(f"prometheus ready at {state.url} (pid {state.pid}); scraping {cfg.resolved().sd_file}")
+    sd = cfg.resolved().sd_file
+    what = f"every live run ({sd})" if not args.sd_file else sd
+    print(f"prometheus ready at {state.url} (pid {state.pid}); scraping {what}")
     print(f"log: {state.log_file}; stop with: credit metrics down")
     return 0
 

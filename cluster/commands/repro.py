@@ -16,6 +16,7 @@ from types import ModuleType
 
 from cluster import repro_curves, repro_emcac, repro_matrix, repro_redundancy, repro_smac
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.run_config import load_train_config
 from cluster.trainer import Progress, write_json
 from learner.registry import ALGOS
@@ -24,9 +25,19 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("repro", help="reproduce the seed's experiments")
+    p = add_command(
+        sub,
+        "repro",
+        "Reproduce the seed's experiments; each writes summary.json, its curves and PNG "
+        "plots under --out.",
+    )
     rsub = p.add_subparsers(dest="repro_command", required=True, metavar="EXPERIMENT")
-    m = rsub.add_parser("matrix", help="seed Fig. 5.3: every algorithm on both matrix games")
+    m = add_command(
+        rsub,
+        "matrix",
+        "Seed Fig. 5.3: train every algorithm on both matrix games; writes "
+        "OUT/summary.json, curves.json and matrix_<game>.png.",
+    )
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
     m.add_argument(
@@ -39,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--t-max",
         type=int,
         default=None,
-        help="env steps per run (default: configs/envs/matrix.yaml)",
+        help="env steps per run (default: cluster/configs/envs/matrix.yaml)",
     )
     _add_run_options(m)
     m.set_defaults(func=cmd_matrix)
@@ -62,21 +73,25 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
     _register_curves(
         rsub,
         "emcac",
-        "seed Table 5.2: CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps",
+        "Seed Table 5.2: train CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps; writes "
+        "OUT/evals/*.jsonl as it runs, then summary.json, curves.json and one PNG per map.",
         repro_emcac,
         default_seeds=8,
     )
     _register_curves(
         rsub,
         "smac",
-        "IQL, VDN, QMIX, QMIX-nostate and RDN on SMAC-like maps (skirmish or real SMAC)",
+        "Train IQL, VDN, QMIX, QMIX-nostate and RDN on SMAC-like maps (skirmish or real SMAC); "
+        "writes OUT/evals/*.jsonl as it runs, then summary.json, curves.json and one PNG per map.",
         repro_smac,
         default_seeds=3,
     )
     m = _register_curves(
         rsub,
         "redundancy",
-        "seed Table 5.1 / Figs. 5.6-5.9: the value family and RDN on bane_vs_bane variants",
+        "Seed Table 5.1 and Figs. 5.6-5.9: train the value family and RDN on bane_vs_bane "
+        "variants; writes OUT/evals/*.jsonl as it runs, then summary.json, curves.json, one "
+        "PNG per map and the redundancy_*.png figures.",
         repro_redundancy,
         default_seeds=3,
     )
@@ -105,7 +120,7 @@ def _register_curves(
     experiment: ModuleType,
     default_seeds: int,
 ) -> argparse.ArgumentParser:
-    m = rsub.add_parser(name, help=help_text)
+    m = add_command(rsub, name, help_text)
     m.add_argument(
         "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
     )

@@ -14,8 +14,9 @@ from pathlib import Path
 import yaml
 
 from cluster.cli_errors import UsageError
+from cluster.commands import add_command
 from cluster.config import ConfigError
-from cluster.run_config import load_train_config
+from cluster.run_config import TrainConfig, default_files, load_train_config
 from cluster.trainer import EvalRecord, LocalTrainer, write_json
 from learner.common import NonFiniteLossError
 from learner.registry import ALGOS
@@ -44,12 +45,23 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train one algorithm on one env")
+    p = add_command(
+        sub,
+        "train",
+        "Train one algorithm on one env; writes OUT/config.yaml, metrics.jsonl, "
+        "summary.json and checkpoint/ (cluster mode adds buffer/, cluster.json and "
+        "targets.json).",
+    )
     add_run_arguments(p)
     p.add_argument("--seed", type=int, help="random seed (run.seed)")
     p.add_argument("--t-max", type=int, help="env steps to train (run.t_max)")
     p.add_argument("--out", default=None, help="output folder (default runs/<algo>_<env>_s<seed>)")
     p.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its checkpoint")
+    p.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved config (every layer applied) as YAML and exit; writes nothing",
+    )
     p.add_argument(
         "--mode",
         choices=["local", "cluster"],
@@ -88,8 +100,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         cfg = load_train_config(args.algo, args.env, args.config, _overrides(args))
         name = f"{cfg.algo_name}_{cfg.env.id.replace('/', '-')}_s{cfg.run.seed}"
         out = Path(args.out or Path("runs") / name)
+    if args.print_config:
+        print(config_text(cfg, args.config), end="")
+        return 0
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False))
+    (out / "config.yaml").write_text(config_text(cfg, args.config))
     if args.mode == "cluster":
         trainer, records = _train_cluster(cfg, out, args)
     else:
@@ -121,6 +136,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     write_json(out / "summary.json", summary)
     print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
     return 0
+
+
+def config_text(cfg: TrainConfig, user_files: list[str]) -> str:
+    """`cfg` as YAML, headed by comments naming the layers it was resolved from."""
+    layers = ["dataclass defaults", *map(str, default_files(cfg.algo_name, cfg.env.id))]
+    layers += [*user_files, "--set overrides"]
+    head = "# Resolved config. Layers, later ones winning:\n"
+    head += "".join(f"#   {layer}\n" for layer in layers)
+    return head + yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False)
 
 
 def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:

@@ -41,3 +41,32 @@ def test_env_list_shows_the_randomised_scenarios(capsys):
             assert rows[f"skirmish/{race}_{size}"]["episode_limit"] == 200
     row = rows["skirmish/protoss_5_vs_5"]
     assert (row["obs_shape"], row["state_shape"], row["n_actions"]) == (92, 130, 11)
+
+
+def _commands(parser, path=()):
+    """(path, help text) of every subcommand below `parser`, depth first."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                yield (*path, name), helps[name], sub
+                yield from _commands(sub, (*path, name))
+
+
+def test_top_level_help_is_whole_sentences():
+    text = build_parser().description
+    assert text.startswith("credit trains") and text.endswith(".")
+    assert "`cluster/commands" not in text  # not the module docstring cut in half
+
+
+def test_every_subcommand_says_in_sentences_what_it_writes():
+    found = list(_commands(build_parser()))
+    assert len(found) >= 29  # every command and sub-command, bench and repro included
+    for path, text, sub in found:
+        where = " ".join(path)
+        assert text and text[0].isupper() and text.endswith("."), f"credit {where}: {text!r}"
+        assert sub.description == text, f"credit {where} --help differs from its list entry"
+        says = ("writes", "write ", "writing", "prints", "print ", "lives in", "live in", "remove")
+        assert any(w in text.lower() for w in says), f"credit {where}: {text!r}"

@@ -98,6 +98,8 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
     _assert_whole_and_unique(state)
 
 
+# slow (about 45 s): make test keeps the value family's cluster runs; this is EM-CAC's two tables.
+@pytest.mark.slow
 def test_emcac_trains_in_cluster_mode_on_both_tables(tmp_path, env):
     """EM-CAC in cluster mode: every learner step takes its 32 cycling episodes and its 32
     replay episodes for the extra critic pass from the buffer service, and no sample of the
@@ -155,6 +157,8 @@ def _scrape_inserts(port: int) -> float:
     return 0.0
 
 
+# slow (about 65 s): a fault test; make test keeps the actor's kill -9.
+@pytest.mark.slow
 def test_kill9_buffer_service_restarts_without_losing_acked_episodes(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)
@@ -184,6 +188,8 @@ def _checkpoint(out: Path):
         return None
 
 
+# slow (about 90 s): a fault test with two cluster runs; make test keeps the actor's kill -9.
+@pytest.mark.slow
 def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "100000", "--set", "run.save_interval=50"], env, out)
@@ -231,6 +237,8 @@ print("after", ray.get(one.remote(), timeout=60), flush=True)
 """
 
 
+# slow (about 120 s): a whole `credit cluster up`, train, `down` lifecycle.
+@pytest.mark.slow
 def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     """`credit cluster up` starts a Ray head on 127.0.0.1 that `--address auto` joins; `down`
     stops that head's processes and no other Ray instance."""
@@ -284,10 +292,10 @@ def test_cluster_up_train_with_address_auto_and_down(tmp_path, env):
     assert after.strip() == "after 1", "cluster down stopped another run's Ray instance"
 
 
-@pytest.mark.parametrize(
-    "actors, num_envs",
-    [pytest.param(1, 1, marks=pytest.mark.slow), (2, 4)],  # 1 x 1: `make test-slow` (36 s)
-)
+# slow (45-80 s a case on the shared 2-core box): both cases run in `make test-slow`; the
+# learner's schedule is tested in one process by tests/learner/test_schedule.py.
+@pytest.mark.slow
+@pytest.mark.parametrize("actors, num_envs", [(1, 1), (2, 4)])
 def test_updates_and_target_refreshes_per_episode_do_not_depend_on_actors(
     tmp_path, env, actors, num_envs
 ):

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import urllib.request
 
@@ -190,3 +194,43 @@ def test_read_file_sd_names_a_broken_file(tmp_path):
         m.read_file_sd(bad)
     with pytest.raises(ValueError, match="host:port"):
         m.parse_target("localhost")
+
+
+def _run_folder(root, name, pid, port):
+    """A run folder as a cluster run leaves it: its own targets.json and cluster.json."""
+    out = root / name
+    m.write_file_sd(out / "targets.json", [("127.0.0.1", port)], {"run": name})
+    (out / "cluster.json").write_text(json.dumps({"learner": {"pid": pid}}))
+    return out
+
+
+def test_each_run_links_its_own_targets_into_the_machines_runs_folder(tmp_path, monkeypatch):
+    monkeypatch.setenv("CREDIT_STATE_DIR", str(tmp_path / "state"))
+    a = _run_folder(tmp_path, "a", os.getpid(), 9101)
+    b = _run_folder(tmp_path / "elsewhere", "b", os.getpid(), 9102)
+    link_a = m.register_run_sd(a / "targets.json")
+    link_b = m.register_run_sd(b / "targets.json")
+    assert link_a != link_b and link_a.parent == link_b.parent == m.runs_sd_dir()
+    assert link_a.resolve() == (a / "targets.json").resolve()  # the run's own file
+    assert m.register_run_sd(a / "targets.json") == link_a  # one link per run folder
+    assert sorted(m.read_runs_sd()) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
+    m.write_file_sd(a / "targets.json", [("127.0.0.1", 9201)])  # the run rewrites its file
+    assert sorted(m.read_runs_sd()) == [("127.0.0.1", 9102), ("127.0.0.1", 9201)]
+    m.unregister_run_sd(link_a)
+    assert m.read_runs_sd() == [("127.0.0.1", 9102)]
+
+
+def test_runs_that_are_gone_are_pruned(tmp_path, monkeypatch):
+    monkeypatch.setenv("CREDIT_STATE_DIR", str(tmp_path / "state"))
+    links = {
+        name: m.register_run_sd(_run_folder(tmp_path, name, os.getpid(), port) / "targets.json")
+        for name, port in (("live", 9101), ("killed", 9102), ("removed", 9103))
+    }
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    killed = {"learner": {"pid": int(done.stdout)}}  # exited and reaped: no such process
+    (tmp_path / "killed" / "cluster.json").write_text(json.dumps(killed))
+    shutil.rmtree(tmp_path / "removed")
+    assert sorted(m.prune_run_sd()) == sorted([links["killed"], links["removed"]])
+    assert sorted(m.runs_sd_dir().iterdir()) == [links["live"]]
+    assert m.read_runs_sd() == [("127.0.0.1", 9101)]

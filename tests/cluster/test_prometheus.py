@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -129,6 +130,76 @@ def test_terminate_returns_only_once_the_child_is_gone_and_reaped(ignores_sigter
         with pytest.raises(ProcessLookupError):
             os.kill(child.pid, 0)
     finally:
-        if child.returncode is None and prom._alive(child.pid):
+        if child.returncode is None and m.pid_alive(child.pid):
             child.kill()
         child.stdout.close()
+
+
+def test_by_default_prometheus_scrapes_every_live_runs_targets(tmp_path, monkeypatch):
+    monkeypatch.setenv("CREDIT_STATE_DIR", str(tmp_path / "state"))
+    cfg = prom.PrometheusConfig().resolved()
+    doc = yaml.safe_load(prom.render_config(cfg))
+    (job,) = doc["scrape_configs"]
+    assert job["file_sd_configs"][0]["files"] == [str(tmp_path / "state/metrics/runs/*.json")]
+
+
+@needs_prometheus
+@pytest.mark.slow
+def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
+    """Two `credit train --mode cluster` runs at once on this machine, each with its own
+    targets.json under its folder; one `credit metrics up` (no --sd-file) scrapes both, and a
+    run that ends cleanly takes its targets away."""
+    pytest.importorskip("ray", reason="cluster mode needs ray")
+    state_dir = tmp_path / "state"
+    env = {**os.environ, "CREDIT_STATE_DIR": str(state_dir), "PYTHONUNBUFFERED": "1"}
+    runs = {name: tmp_path / name for name in ("first", "second")}
+    procs = {}
+    for name, out in runs.items():
+        cmd = [sys.executable, "-m", "cluster.cli", "train", "--mode", "cluster", "--actors", "1"]
+        cmd += ["--algo", "vdn", "--env", "matrix/two_step", "--t-max", "100000000"]
+        cmd += ["--out", str(out), "--set", "run.test_interval=100000"]
+        log = open(tmp_path / f"{name}.log", "w")  # noqa: SIM115 - closed with the process
+        procs[name] = (subprocess.Popen(cmd, env=env, stdout=log, stderr=log), log)
+    metrics_state = tmp_path / "prometheus"
+    try:
+        for name, out in runs.items():
+            wait_for(
+                lambda out=out: len(m.read_file_sd(out / "targets.json")) == 3,
+                timeout_s=240,
+                what=f"{name}'s targets.json (learner, actor, buffer service)",
+                proc=procs[name][0],
+            )
+        up = ["metrics", "up", "--port", "0", "--state-dir", str(metrics_state)]
+        assert subprocess.run([sys.executable, "-m", "cluster.cli", *up], env=env).returncode == 0
+        state = prom.read_state(metrics_state)
+        labels = {str(out.resolve()) for out in runs.values()}
+
+        def updating_runs() -> set[str]:
+            rows = prom.query(state.url, "credit_learner_updates_total > 0")
+            return {r["metric"]["run"] for r in rows}
+
+        wait_for(lambda: updating_runs() == labels, timeout_s=120, what="both runs' learners")
+        scraped = prom.query(state.url, 'up{job="credit"} == 1')
+        assert len(scraped) == 6  # every exporter of both runs answers
+        assert {r["metric"]["run"] for r in scraped} == labels
+        first, first_log = procs.pop("first")
+        first.send_signal(signal.SIGINT)
+        assert first.wait(timeout=120) in (0, 130)
+        first_log.close()
+        wait_for(
+            lambda: (
+                {r["metric"]["run"] for r in prom.query(state.url, 'up{job="credit"}')}
+                == {str(runs["second"].resolve())}
+            ),
+            timeout_s=60,
+            what="the ended run's targets to leave Prometheus",
+        )
+    finally:
+        for proc, log in procs.values():
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=120)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            log.close()
+        prom.stop(metrics_state)

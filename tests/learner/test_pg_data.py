@@ -37,7 +37,7 @@ def _seqs(batch) -> list[int]:
         ("coma", 4, 4, None, 0),
         ("ecac", 4, 32, 5000, 32),
         ("emcac", 4, 32, 5000, 32),
-        ("qmix", 8, None, 5000, 0),  # value family: 8 envs, configs/envs/skirmish.value.yaml
+        ("qmix", 8, None, 5000, 0),  # value family: 8 envs, envs/skirmish.value.yaml
     ],
 )
 def test_shipped_layers_give_the_seeds_data_flow_on_skirmish(

@@ -16,6 +16,7 @@ import numpy as np
 from actors.envs.registry import make_vec_env
 from actors.envs.skirmish.env import SkirmishVecEnv
 from actors.envs.skirmish.scripts import POLICIES
+from actors.rollout import RolloutWorker
 
 log = logging.getLogger(__name__)
 MARKERS = {
@@ -54,53 +55,90 @@ def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
     return {**statics(venv, m), **dynamics(venv, m)}
 
 
+class FrameDrawer:
+    """Draws snapshots of one battle's units on a single figure kept across frames: the map,
+    axes and legend are made once and only the units change (a new figure per frame costs
+    several times more, mostly in laying out its ticks).
+
+        drawer = FrameDrawer(first_snapshot)
+        frames = [drawer.draw(snap, f"t={t}") for t, snap in enumerate(snaps)]
+        drawer.close()
+    """
+
+    def __init__(self, snap: dict[str, Any]):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        self.plt = plt
+        self.fig, ax = plt.subplots(figsize=(5, 5), dpi=80)
+        ax.set_xlim(0, snap["map"][0])
+        ax.set_ylim(0, snap["map"][1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=6)
+        names = snap["names"]
+        handles = [
+            ax.plot([], [], MARKERS.get(n, "o"), color="0.4", label=n)[0]
+            for n in sorted(set(names))
+        ]
+        ax.legend(handles=handles, loc="lower left", fontsize=6, framealpha=0.6)
+        self.ax = ax
+        self.static = list(ax.lines)
+        self.title = ax.set_title("", fontsize=9)
+        self.note = ax.text(0.01, 0.99, "", transform=ax.transAxes, fontsize=6, va="top")
+
+    def draw(
+        self,
+        snap: dict[str, Any],
+        title: str,
+        tint: dict[int, Any] | None = None,
+        note: str = "",
+    ) -> np.ndarray:
+        """An RGB image [H, W, 3] (uint8) of a `snapshot` of the battle given to __init__;
+        `tint` maps unit indices to colours that replace their team colour (e.g. each agent's
+        share of the credit), `note` is a line of text at the top left."""
+        ax, s, team, names = self.ax, snap, snap["team"], snap["names"]
+        for line in [line for line in ax.lines if line not in self.static]:
+            line.remove()
+        self.note.set_text(note)
+        self.title.set_text(title)
+        for u, t in enumerate(s["tgt"].tolist()):
+            if t >= 0:
+                color = "tab:green" if team[u] == team[t] else "orange"
+                ax.plot([s["x"][u], s["x"][t]], [s["y"][u], s["y"][t]], color=color, lw=0.8)
+        for u in range(len(names)):
+            x, y = s["x"][u], s["y"][u]
+            if not s["alive"][u]:
+                ax.plot(x, y, "x", color="0.7", ms=3)
+                continue
+            color = "tab:blue" if team[u] == 0 else "tab:red"
+            if tint and u in tint:
+                color = tint[u]
+            size = 4 + 8 * s["radius"][u]
+            ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
+            frac = s["hp"][u] / s["hp_max"][u]
+            ax.plot([x - 0.5, x - 0.5 + frac], [y + 0.7, y + 0.7], color="limegreen", lw=1.5)
+            if s["sh_max"][u] > 0:
+                sf = s["sh"][u] / s["sh_max"][u]
+                ax.plot([x - 0.5, x - 0.5 + sf], [y + 0.9, y + 0.9], color="cyan", lw=1.2)
+        self.fig.canvas.draw()
+        return np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
+
+    def close(self) -> None:
+        self.plt.close(self.fig)
+
+
 def draw_frame(
     snap: dict[str, Any], title: str, tint: dict[int, Any] | None = None, note: str = ""
 ) -> np.ndarray:
-    """An RGB image [H, W, 3] (uint8) of a `snapshot`; `tint` maps unit indices to colours
-    that replace their team colour (e.g. each agent's share of the credit), `note` is a
-    line of text under the legend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    s, team, names = snap, snap["team"], snap["names"]
-    fig, ax = plt.subplots(figsize=(5, 5), dpi=80)
-    ax.set_xlim(0, s["map"][0])
-    ax.set_ylim(0, s["map"][1])
-    ax.set_aspect("equal")
-    ax.set_title(title, fontsize=9)
-    ax.tick_params(labelsize=6)
-    for u, t in enumerate(s["tgt"].tolist()):
-        if t >= 0:
-            color = "tab:green" if team[u] == team[t] else "orange"
-            ax.plot([s["x"][u], s["x"][t]], [s["y"][u], s["y"][t]], color=color, lw=0.8)
-    for u in range(len(names)):
-        x, y = s["x"][u], s["y"][u]
-        if not s["alive"][u]:
-            ax.plot(x, y, "x", color="0.7", ms=3)
-            continue
-        color = "tab:blue" if team[u] == 0 else "tab:red"
-        if tint and u in tint:
-            color = tint[u]
-        size = 4 + 8 * s["radius"][u]
-        ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
-        frac = s["hp"][u] / s["hp_max"][u]
-        ax.plot([x - 0.5, x - 0.5 + frac], [y + 0.7, y + 0.7], color="limegreen", lw=1.5)
-        if s["sh_max"][u] > 0:
-            sf = s["sh"][u] / s["sh_max"][u]
-            ax.plot([x - 0.5, x - 0.5 + sf], [y + 0.9, y + 0.9], color="cyan", lw=1.2)
-    handles = [
-        ax.plot([], [], MARKERS.get(n, "o"), color="0.4", label=n)[0] for n in sorted(set(names))
-    ]
-    ax.legend(handles=handles, loc="lower left", fontsize=6, framealpha=0.6)
-    if note:
-        ax.text(0.01, 0.99, note, transform=ax.transAxes, fontsize=6, va="top")
-    fig.canvas.draw()
-    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    plt.close(fig)
-    return img
+    """An RGB image [H, W, 3] (uint8) of a `snapshot` (one frame; `FrameDrawer` for many);
+    `tint` and `note` as in `FrameDrawer.draw`."""
+    drawer = FrameDrawer(snap)
+    try:
+        return drawer.draw(snap, title, tint, note)
+    finally:
+        drawer.close()
 
 
 def write_images(frames: list[np.ndarray], out: str | Path) -> Path:
@@ -149,15 +187,64 @@ def render_episode(
     act = POLICIES[policy]
     rng = np.random.default_rng(seed)
     venv.reset()
-    frames = [draw_frame(snapshot(venv), f"{env_id}  t=0")]
+    drawer = FrameDrawer(snapshot(venv))
+    frames = [drawer.draw(snapshot(venv), f"{env_id}  t=0")]
     ret, won, t = 0.0, False, 0
     while t < max_steps:
         r, term, infos = venv.step(act(venv, rng), np.ones(1, bool))
         t += 1
         ret += float(r[0])
-        frames.append(draw_frame(snapshot(venv), f"{env_id}  t={t}  return={ret:.1f}"))
+        frames.append(drawer.draw(snapshot(venv), f"{env_id}  t={t}  return={ret:.1f}"))
         if term[0]:
             won = bool(infos[0]["battle_won"])
             break
+    drawer.close()
     out = write_images(frames, out)
     return {"out": str(out), "frames": len(frames), "battle_won": won, "steps": t, "return": ret}
+
+
+def render_policy_episode(
+    worker: RolloutWorker, out: str | Path, title: str, tries: int = 10
+) -> dict[str, Any]:
+    """Play greedy episodes with `worker`'s policy until one is won (at most `tries`) and
+    write that one, or the last if none was won, to `out`.
+
+    Args:
+        worker: a RolloutWorker over one skirmish env (num_envs 1), holding the policy.
+        out: `.gif` for an animation, anything else for a strip of frames.
+        title: shown above every frame, before the step and the return so far.
+        tries: episodes played at most.
+
+    Returns:
+        {"out", "frames", "battle_won", "steps", "return", "episodes_played"}.
+    """
+    venv = worker.venv
+    if not isinstance(venv, SkirmishVecEnv) or venv.num_envs != 1:
+        raise ValueError("render_policy_episode needs a worker over one skirmish env")
+    snaps: list[dict[str, Any]] = []  # the battle after the reset and after every step
+    played = 0
+    while played < tries:
+        played += 1
+        snaps.clear()
+        result = worker.run_round(greedy=True, on_step=lambda: snaps.append(snapshot(venv)))
+        if result.won[0]:
+            break
+    won = bool(result.won[0])
+    returns = np.concatenate([[0.0], np.cumsum(result.episodes[0].reward)])
+    drawer = FrameDrawer(snaps[0])
+    frames = [
+        drawer.draw(snap, f"{title}  t={t}  return={returns[t]:.1f}")
+        for t, snap in enumerate(snaps)
+    ]
+    frames += [drawer.draw(snaps[-1], f"{title}  {'won' if won else 'lost'}")] * 4  # a pause
+    drawer.close()
+    out = write_images(frames, out)
+    steps = len(snaps) - 1
+    return {
+        "out": str(out),
+        "frames": len(frames),
+        "battle_won": won,
+        "steps": steps,
+        "return": float(returns[-1]),
+        "episodes_played": played,
+    }

@@ -420,7 +420,7 @@ class StarCraft2Env(MultiAgentEnv):
         """Write the episodes played since the last call (at most REPLAY_EPISODES) as one
         animated GIF `<replay_prefix or map_name>_<time>.gif` in `replay_dir` (default: the
         working directory), where SMAC saves an SC2 replay; returns its path."""
-        from actors.envs.skirmish.render import draw_frame, write_images
+        from actors.envs.skirmish.render import FrameDrawer, write_images
 
         episodes = [e for e in self._replays if len(e["frames"]) > 1]
         if not episodes:
@@ -428,9 +428,11 @@ class StarCraft2Env(MultiAgentEnv):
             return None
         frames = []
         for k, ep in enumerate(episodes):
+            drawer = FrameDrawer({**ep["statics"], **ep["frames"][0]})
             for t, dyn in enumerate(ep["frames"]):
                 title = f"{self.map_name}  episode {k + 1}/{len(episodes)}  t={t}"
-                frames.append(draw_frame({**ep["statics"], **dyn}, title))
+                frames.append(drawer.draw({**ep["statics"], **dyn}, title))
+            drawer.close()
         prefix = self.replay_prefix or Path(str(self.map_name)).stem
         stamp = time.strftime("%Y-%m-%d-%H-%M-%S")
         path = Path(self.replay_dir or ".") / f"{prefix}_{stamp}.gif"
