@@ -242,8 +242,9 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     algorithm's own hyper-parameters, including data flow it fixes, e.g. the policy-gradient
     family's 4 new episodes per step and 32-episode cycling buffer). Optional, used when
     present: envs/<family>.<algo family>.yaml (what one algorithm family needs on that env
-    family, e.g. the value family's measured settings on SMAC-like maps) and
-    envs/<family>/<name>.yaml (what one map needs).
+    family, e.g. the value family's measured settings on SMAC-like maps),
+    envs/<family>.<algo>.yaml (what one algorithm needs on that env family, e.g. RDN's critic
+    targets on SMAC-like maps) and envs/<family>/<name>.yaml (what one map needs).
     """
     family, _, name = env_id.partition("/")
     algo_family = get_algo(algo).family
@@ -257,6 +258,7 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
             )
     optional = [
         root / "envs" / f"{family}.{algo_family}.yaml",
+        root / "envs" / f"{family}.{algo}.yaml",
         root / "envs" / family / f"{name}.yaml",
     ]
     return required + [p for p in optional if p.is_file()]

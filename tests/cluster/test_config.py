@@ -60,3 +60,18 @@ def test_broken_yaml_names_file_and_line(tmp_path):
         read_yaml(bad)
     with pytest.raises(ConfigError, match="cannot read config file"):
         read_yaml(tmp_path / "missing.yaml")
+
+
+@pytest.mark.parametrize(
+    ("algo", "env", "td_lambda"),
+    [
+        ("rdn", "skirmish/3m", 0.8),  # envs/skirmish.rdn.yaml
+        ("rdn", "smac/3m", 0.8),  # envs/smac.rdn.yaml
+        ("rdn", "matrix/four_game", 0.0),  # no matrix.rdn.yaml: the seed's one-step critic
+        ("vdn", "skirmish/3m", 0.0),  # another algorithm's layer does not leak
+    ],
+)
+def test_per_algorithm_env_layer_applies_to_that_algorithm_only(algo, env, td_lambda):
+    cfg = load_train_config(algo, env, [], [])
+    assert cfg.algo.td_lambda == td_lambda
+    assert load_train_config(algo, env, [], ["algo.td_lambda=0.3"]).algo.td_lambda == 0.3
