@@ -225,6 +225,22 @@ class RDNLearner(AgentCriticLearner):
         diff, delta = lrp_difference(self.critic, x, x_ref, cfg.lrp_eps)
         return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta
 
+    def _every_action_targets(
+        self, x: torch.Tensor, actions: torch.Tensor, shares: torch.Tensor, q_tot: torch.Tensor
+    ) -> torch.Tensor:
+        """Targets [E, B, T, N, A] for agent_targets "all_actions" or "counterfactual" (see
+        RDNConfig), from critic inputs x, the taken actions [E, B, T, N], their LRP shares
+        [E, B, T, N] and Q_c(x) [E, B*T]."""
+        e, b, t, n = actions.shape
+        args = (x, actions.reshape(e, b * t, n), n, self.cfg.obs_window * self.info.obs_dim)
+        if self.cfg.agent_targets == "all_actions":
+            every = agent_relevance_all_actions(
+                self.critic, *args, self.info.n_actions, self.cfg.lrp_eps, self.cfg.lrp_rule
+            )
+            return every.view(e, b, t, n, -1)
+        q_alt = critic_all_actions(self.critic, *args, self.info.n_actions).view(e, b, t, n, -1)
+        return shares.unsqueeze(-1) + q_alt - q_tot.view(e, b, t, 1, 1)
+
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
         tb = TensorBatch.from_episodes(batch, self.device)
@@ -244,35 +260,14 @@ class RDNLearner(AgentCriticLearner):
 
         targets, q_tot = self.agent_targets(x)
         targets = targets.view(e, b, t, n)
-        if self.cfg.agent_targets == "counterfactual":
-            q_alt = critic_all_actions(
-                self.critic,
-                x,
-                tb.actions.reshape(e, b * t, n),
-                n,
-                self.cfg.obs_window * self.info.obs_dim,
-                self.info.n_actions,
-            ).view(e, b, t, n, -1)
-            every = targets.unsqueeze(-1) + q_alt - q_tot.view(e, b, t, 1, 1)
-            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
-            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
-        elif self.cfg.agent_targets == "all_actions":
-            every = agent_relevance_all_actions(
-                self.critic,
-                x,
-                tb.actions.reshape(e, b * t, n),
-                n,
-                self.cfg.obs_window * self.info.obs_dim,
-                self.info.n_actions,
-                self.cfg.lrp_eps,
-                self.cfg.lrp_rule,
-            ).view(e, b, t, n, -1)
-            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
-            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
-        else:
+        if self.cfg.agent_targets == "taken":
             chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
             mask = tb.mask.unsqueeze(-1).expand_as(chosen)
             agent_loss = masked_mean((chosen - targets).pow(2), mask)
+        else:  # a target for every available action of every agent
+            every = self._every_action_targets(x, tb.actions, targets, q_tot)
+            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
+            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
         self.agent_updater.apply(agent_loss)
 
         self.updates += 1
