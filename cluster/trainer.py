@@ -59,31 +59,35 @@ class EvalRecord:
 
 class Progress:
     """A one-line progress bar on a terminal, log lines otherwise (at most one per `every_s`),
-    each with the env steps per second since the previous line."""
+    each with the env steps per second between the last two changes of the step count (a
+    caller that learns the count only at evaluations, as `credit repro` does, keeps showing
+    the last measured rate instead of 0)."""
 
     def __init__(self, total: int, every_s: float = 5.0):
         self.total, self.every_s = total, every_s
         self.tty = sys.stderr.isatty()
         self.last = 0.0
-        self.rate_from: tuple[int, float] | None = None  # (done, monotonic time) of the last line
+        self.changed: tuple[int, float] | None = None  # (done, monotonic time) of the last change
+        self.rate = ""
 
     def update(self, done: int, text: str) -> None:
         now = time.monotonic()
-        rate = ""
-        if self.rate_from is not None and now > self.rate_from[1]:
-            per_s = (done - self.rate_from[0]) / (now - self.rate_from[1])
-            rate = f" | {per_s:,.0f} env steps/s"
+        if self.changed is None:
+            self.changed = (done, now)
+        elif done != self.changed[0] and now > self.changed[1]:
+            per_s = (done - self.changed[0]) / (now - self.changed[1])
+            self.rate = f" | {per_s:,.0f} env steps/s"
+            self.changed = (done, now)
         if self.tty:
             frac = min(1.0, done / self.total)
             bar = "#" * int(30 * frac)
-            sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}% t_env {done:,} {text}{rate}\x1b[K")
+            sys.stderr.write(
+                f"\r[{bar:<30}] {100 * frac:5.1f}% t_env {done:,} {text}{self.rate}\x1b[K"
+            )
             sys.stderr.flush()
         elif now - self.last >= self.every_s:
-            log.info("t_env %d/%d %s%s", done, self.total, text, rate)
+            log.info("t_env %d/%d %s%s", done, self.total, text, self.rate)
             self.last = now
-        else:
-            return
-        self.rate_from = (done, now)
 
     def close(self) -> None:
         if self.tty:

@@ -44,9 +44,13 @@ def test_progress_lines_give_env_steps_win_rate_and_throughput(caplog):
         bar.update(100, "win rate 0.10")
         time.sleep(0.05)
         bar.update(300, "win rate 0.40")
-    first, second = (r.getMessage() for r in caplog.records)
+        time.sleep(0.05)
+        bar.update(300, "win rate 0.40")  # no new steps yet: the last rate stays, not 0
+    first, second, third = (r.getMessage() for r in caplog.records)
     assert first == "t_env 100/1000 win rate 0.10"
-    assert re.fullmatch(r"t_env 300/1000 win rate 0\.40 \| [\d,]+ env steps/s", second)
+    line = re.fullmatch(r"t_env 300/1000 win rate 0\.40 \| ([\d,]+) env steps/s", second)
+    assert line and int(line.group(1).replace(",", "")) > 0
+    assert third == second
 
 
 def test_the_demo_needs_a_skirmish_map(capsys):
