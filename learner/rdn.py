@@ -8,6 +8,11 @@ own input block, and each agent's Q_i(o_i, u_i) is regressed onto it. The state 
 Next action in the critic's TD target (`next_action`):
 * "greedy" (default): each agent's greedy action under the current agent network (the joint
   action the agents would actually take), which scales to any number of agents;
+* "local_max": the best of the greedy joint action and every joint action that moves one
+  agent's action away from it (N·(A-1) + 1 candidates, from one counterfactual pass of the
+  critic), chosen by the online critic and valued by the target critic (double Q-learning's
+  split), so the critic's target improves on the agents' greedy policy as Q-learning's max
+  does, at any number of agents;
 * "joint_max": the maximum of the target critic over every joint action, exact centralised
   Q-learning, only possible when A^N is small (<= `joint_max_limit`).
 """
@@ -64,7 +69,7 @@ class RDNConfig:
         obs_window: how many of each agent's latest observations the critic sees.
         lrp_rule: relevance rule, one of learner.lrp.LRP_RULES.
         lrp_eps: ε of the LRP-ε rule.
-        next_action: "greedy" or "joint_max" (module docstring).
+        next_action: "greedy", "local_max" or "joint_max" (module docstring).
         agent_targets: "taken" (the seed's: Q_i(o_i, u_i) of the taken action regresses onto
             agent i's LRP share of Q_c(x)) or "all_actions" (every available action a of
             agent i regresses onto its LRP share of Q_c with its action moved to a, the
@@ -91,7 +96,7 @@ class RDNConfig:
     obs_window: int = 4
     lrp_rule: Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"] = "eps_residual"
     lrp_eps: float = 0.01
-    next_action: Literal["greedy", "joint_max"] = "greedy"
+    next_action: Literal["greedy", "local_max", "joint_max"] = "greedy"
     agent_targets: Literal["taken", "all_actions", "counterfactual"] = "taken"
     lrp_reference: Literal["zero", "no_actions"] = "zero"
     joint_max_limit: int = 1024
@@ -188,8 +193,10 @@ class RDNLearner(AgentCriticLearner):
         """Target critic value of the next step, [E, B, T]."""
         e, b, t, n, _ = hist_next.shape
         critic = self.target_critic.module
-        if self.cfg.next_action == "greedy":
+        if self.cfg.next_action != "joint_max":
             greedy = qs_next.masked_fill(~avail_next, -1e10).argmax(-1)
+            if self.cfg.next_action == "local_max":
+                greedy = self._best_deviation(hist_next, greedy, avail_next)
             return critic(self.critic_inputs(hist_next, greedy)).view(e, b, t)
         joint = torch.tensor(
             list(itertools.product(range(self.info.n_actions), repeat=n)), device=self.device
@@ -201,6 +208,25 @@ class RDNLearner(AgentCriticLearner):
             v = critic(self.critic_inputs(hist_next, acts)).view(e, b, t)
             values.append(v.masked_fill(~allowed, -1e10))
         return torch.stack(values, -1).max(-1).values
+
+    def _best_deviation(
+        self, hist_next: torch.Tensor, greedy: torch.Tensor, avail_next: torch.Tensor
+    ) -> torch.Tensor:
+        """The joint action among `greedy` and its single-agent deviations that the online
+        critic values most (next_action "local_max"), [E, B, T, N].
+
+        Shapes: hist_next [E, B, T, N, W*O], greedy [E, B, T, N], avail_next [E, B, T, N, A].
+        """
+        e, b, t, n = greedy.shape
+        a = self.info.n_actions
+        x = self.critic_inputs(hist_next, greedy)
+        offset = self.cfg.obs_window * self.info.obs_dim
+        q = critic_all_actions(self.critic, x, greedy.reshape(e, b * t, n), n, offset, a)
+        q = q.view(e, b, t, n, a).masked_fill(~avail_next, float("-inf"))
+        best = q.view(e, b, t, n * a).argmax(-1)  # the greedy action itself is a candidate
+        agent, action = best // a, best % a
+        moved = torch.nn.functional.one_hot(agent, n).bool()
+        return torch.where(moved, action.unsqueeze(-1), greedy)
 
     def agent_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each agent's LRP share of the critic's value for critic inputs x [E, M, N*block]:

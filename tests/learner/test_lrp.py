@@ -255,3 +255,39 @@ def test_rdn_with_an_agent_encoder_steps_and_rejects_a_negative_width():
     metrics = learner.step(record_batch("skirmish/3m", 4, 1))
     assert metrics["lrp_conservation_gap"] < 1e-3
     assert not torch.equal(before, learner.critic.layers[0].block_weight)
+
+
+def test_rdn_local_max_next_action_is_the_best_available_single_agent_deviation():
+    """next_action "local_max": among the greedy joint action and every joint action moving one
+    agent's action, the online critic's best, never an unavailable action; brute force."""
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.batch import TensorBatch, obs_history
+    from learner.rdn import RDNConfig, RDNLearner
+
+    torch.manual_seed(0)
+    cfg = RDNConfig(next_action="local_max", critic_hidden=(16, 16))
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    learner = RDNLearner(cfg, schema)
+    tb = TensorBatch.from_episodes(record_batch("skirmish/3m", 3, 1))
+    hist = obs_history(tb.obs, cfg.obs_window)[:, :, 1:]
+    avail = tb.avail[:, :, 1:]
+    e, b, t, n = tb.actions.shape
+    a = schema.n_actions
+    # a random available action for every agent (padding steps make the no-op available)
+    greedy = torch.multinomial(avail.reshape(-1, a).float(), 1).view(e, b, t, n)
+    with torch.no_grad():
+        got = learner._best_deviation(hist, greedy, avail)
+        value = learner.critic(learner.critic_inputs(hist, got)).view(e, b, t)
+        best = learner.critic(learner.critic_inputs(hist, greedy)).view(e, b, t)
+        for i in range(n):
+            for u in range(a):
+                alt = greedy.clone()
+                alt[..., i] = u
+                q = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
+                best = torch.where(avail[..., i, u], torch.maximum(best, q), best)
+    torch.testing.assert_close(value, best)
+    assert avail.gather(-1, got.unsqueeze(-1)).all()
+    assert ((got != greedy).sum(-1) <= 1).all()
+    metrics = learner.step(record_batch("skirmish/3m", 4, 1))
+    assert metrics["lrp_conservation_gap"] < 1e-3
