@@ -17,6 +17,8 @@ from types import ModuleType
 from cluster import repro_curves, repro_emcac, repro_matrix, repro_redundancy, repro_smac
 from cluster.cli_errors import UsageError
 from cluster.commands import add_command
+from cluster.ray_cluster import UnreachableClusterError
+from cluster.repro_fanout import FanOutConfig
 from cluster.run_config import load_train_config
 from cluster.trainer import Progress, write_json
 from learner.registry import ALGOS
@@ -58,8 +60,41 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_run_options(m: argparse.ArgumentParser) -> None:
-    """--workers and --set, shared by every experiment."""
-    m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
+    """Where the (algorithm, env) pairs run, and --set; shared by every experiment."""
+    m.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="local processes running pairs in parallel (without --address)",
+    )
+    m.add_argument(
+        "--address",
+        default=None,
+        metavar="auto|HOST:PORT",
+        help="run each (algorithm, env) pair as a Ray task on this cluster: 'auto' = the one "
+        "`credit cluster up` started (else Ray's discovery, e.g. RAY_ADDRESS), or a head's "
+        "HOST:PORT; results still land in --out (default: local processes)",
+    )
+    m.add_argument(
+        "--cpus-per-pair",
+        type=float,
+        default=1.0,
+        help="with --address: CPUs each pair's task asks for (default 1; a pair uses "
+        "run.torch_threads threads, 1 unless set)",
+    )
+    m.add_argument(
+        "--max-retries",
+        type=int,
+        default=3,
+        help="with --address: restarts of a pair whose worker process or node dies (default 3)",
+    )
+    m.add_argument(
+        "--no-ship-code",
+        dest="ship_code",
+        action="store_false",
+        help="with --address: run the credit installed on the nodes instead of uploading this "
+        "checkout's packages to them",
+    )
     m.add_argument(
         "--set",
         action="append",
@@ -67,6 +102,30 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+
+
+def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
+    """The run options of a repro command as a checked FanOutConfig (UsageError if bad)."""
+    cfg = FanOutConfig(
+        workers=args.workers,
+        address=args.address or None,
+        cpus_per_pair=args.cpus_per_pair,
+        max_retries=args.max_retries,
+        ship_code=args.ship_code,
+    )
+    try:
+        cfg.validate()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    return cfg
+
+
+def _run(run: Callable[[], list]) -> list:
+    """Run the pairs; an unreachable cluster is a usage error (exit 2, no traceback)."""
+    try:
+        return run()
+    except UnreachableClusterError as e:
+        raise UsageError(str(e)) from None
 
 
 def register_emcac(rsub: argparse._SubParsersAction) -> None:
@@ -182,6 +241,7 @@ def cmd_curves(
         raise UsageError("--algos and --envs must name at least one algorithm and env")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
@@ -203,8 +263,10 @@ def cmd_curves(
         watcher.start()
         try:
             checkpoints = out / "checkpoints" if args.checkpoints else None
-            curves = repro_curves.run(
-                algos, envs, args.seeds, overrides, args.workers, out / "evals", checkpoints
+            curves = _run(
+                lambda: repro_curves.run(
+                    algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints
+                )
             )
         finally:
             done.set()
@@ -264,15 +326,16 @@ def cmd_matrix(args: argparse.Namespace) -> int:
             )
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     optimum = {}
     for g in games:  # validates every (algo, game) config before any training starts
         cfgs = [load_train_config(a, g, [], overrides) for a in algos]
         optimum[g] = repro_matrix.optimum_of(g, cfgs[0].env.args)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = repro_matrix.run(algos, games, args.seeds, overrides, args.workers)
+    curves = _run(lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals"))
     summary = repro_matrix.summarise(curves, optimum)
     write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
