@@ -312,9 +312,17 @@ def connect(address: str | None, num_cpus: int, runtime_env: dict | None = None)
         # KubeRay and `ray up` set it, or a head started on this machine with `ray start`).
         state = ClusterState.load()
         address = state.address if state is not None else "auto"
+        if state is not None:
+            try:
+                check_reachable(address)
+            except UnreachableClusterError as e:
+                raise UnreachableClusterError(
+                    f"--address auto: the cluster recorded in {state_dir() / 'state.json'} is "
+                    f"gone: {e}"
+                ) from None
+    elif address:
+        check_reachable(address)
     if address:
-        if address != "auto":
-            check_reachable(address)
         try:
             ray.init(
                 address=address,
