@@ -30,15 +30,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(
         sub,
         "repro",
-        "Reproduce the seed's experiments; each writes summary.json, its curves and PNG "
-        "plots under --out.",
+        "Reproduce the seed's experiments, in local processes or as Ray tasks on a cluster "
+        "(--address); each writes summary.json, its curves and PNG plots under --out.",
     )
     rsub = p.add_subparsers(dest="repro_command", required=True, metavar="EXPERIMENT")
     m = add_command(
         rsub,
         "matrix",
-        "Seed Fig. 5.3: train every algorithm on both matrix games; writes "
-        "OUT/summary.json, curves.json and matrix_<game>.png.",
+        "Seed Fig. 5.3: train every algorithm on both matrix games, in local processes or "
+        "on a Ray cluster (--address); writes OUT/evals/*.jsonl as it runs, then "
+        "summary.json, curves.json and matrix_<game>.png.",
     )
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
