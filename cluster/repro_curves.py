@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.repro_fanout import FanOutConfig, Pair, run_pairs
+from cluster.repro_fanout import FanOutConfig, Pair, StatusLine, run_pairs
 
 log = logging.getLogger(__name__)
 
@@ -317,10 +317,13 @@ def run(
     fan: FanOutConfig,
     log_dir: Path | None = None,
     checkpoint_dir: Path | None = None,
+    total_steps: int = 0,
 ) -> list[Curve]:
     """Every (algo, env) pair where `fan` says; curves in (env, algo) order. Each pair's
     evaluations go to log_dir/<env>__<algo>.jsonl as they happen and, with `checkpoint_dir`,
-    its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes."""
+    its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes. With
+    `total_steps` (every pair's t_max together), a status line shows the env steps done and
+    each pair's latest median win rate."""
     pairs = [Pair(a, g) for g in envs for a in algos]
 
     def on_result(pair: Pair, out: PairOutput) -> None:
@@ -328,5 +331,6 @@ def run(
             write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
 
     args = (seeds, overrides, 1, checkpoint_dir is not None)
-    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result)
+    status = StatusLine(total_steps, "won", "win") if total_steps else None
+    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result, status)
     return [o.curve for o in outputs]

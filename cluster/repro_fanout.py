@@ -14,31 +14,28 @@ scratch with the same seeds, so its result is the one an uninterrupted run gives
 collector drops the lost attempt's log lines. An exception raised by the pair itself (a bad
 config, a non-finite loss) is not retried: it ends the run, as it does locally.
 
-By default the driver ships its own `actors`, `buffer_service`, `learner` and `cluster`
-packages to every node (Ray `runtime_env` `py_modules`), so the nodes run the very code the
-driver runs; they still need the dependencies (torch, numpy, ray) installed. With
-`ship_code=False` the nodes import the `credit` installed in their own environment.
+The Ray side (tasks, the event board, shipping the code to the nodes) is
+`cluster.repro_fanout_ray`, imported only when an address is given.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import multiprocessing
 import os
 import queue
 import socket
+import sys
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
-
-from cluster.ray_cluster import ClusterError
+from typing import Any, Protocol
 
 log = logging.getLogger(__name__)
 
-R = TypeVar("R")
 POLL_S = 1.0  # how often the driver collects events while pairs run
 
 
@@ -70,7 +67,8 @@ class FanOutConfig:
         cpus_per_pair: Ray mode: CPUs each pair's task asks for (its torch threads are
             `run.torch_threads`, 1 by default; ask for as many CPUs as it uses).
         max_retries: Ray mode: times a pair is restarted after its worker process or node dies.
-        ship_code: Ray mode: upload this driver's packages to every node (module docstring).
+        ship_code: Ray mode: upload this driver's packages to every node
+            (`cluster.repro_fanout_ray`).
     """
 
     workers: int = 2
@@ -144,14 +142,61 @@ def run_pair(fn: PairFn, pair: Pair, args: tuple, sink: EventSink) -> Any:
     return result
 
 
-class Collector:
-    """The driver's side: writes each pair's evaluation log and logs its start and finish."""
+@dataclass(frozen=True)
+class StatusLine:
+    """The driver's status line over every pair (`cluster.trainer.Progress`).
 
-    def __init__(self, pairs: Sequence[Pair], log_dir: Path | None):
-        self.log_dir, self.total = log_dir, len(pairs)
+    Args:
+        total_steps: env steps of all pairs together (the bar's 100%).
+        key: field of the evaluation lines shown per pair, its median over seeds ("won").
+        name: what the line calls it ("win").
+    """
+
+    total_steps: int
+    key: str = "won"
+    name: str = "win"
+
+
+class Collector:
+    """The driver's side: writes each pair's evaluation log, logs its start and finish, and
+    keeps the status line (env steps done: each pair's latest evaluation)."""
+
+    def __init__(
+        self, pairs: Sequence[Pair], log_dir: Path | None, status: StatusLine | None = None
+    ):
+        self.log_dir, self.total, self.status = log_dir, len(pairs), status
         self.attempt: dict[Pair, str] = {}
         self.starts: dict[Pair, int] = {}
         self.finished: set[Pair] = set()
+        self.latest: dict[Pair, dict] = {}  # each pair's latest evaluation line
+        self.bar = None
+        if status is not None:
+            from cluster.trainer import Progress
+
+            self.bar = Progress(status.total_steps)
+
+    def _say(self, msg: str, *args: Any) -> None:
+        if self.bar is not None and self.bar.tty:
+            sys.stderr.write("\r\x1b[K")  # the log line replaces the bar; the next update redraws
+        log.info(msg, *args)
+
+    def tick(self) -> None:
+        """Redraw the status line; the loops call it once per collection of events, so that
+        its rate is measured over a collection period, not between events of one batch."""
+        if self.bar is None:
+            return
+        key = self.status.key
+        shown = []
+        for pair, row in self.latest.items():
+            values = sorted(row.get(key) or [0.0])
+            shown.append(f"{pair.label} {values[len(values) // 2]:.2f}")
+        steps = sum(int(row.get("t_env", 0)) for row in self.latest.values())
+        pairs = f"{len(self.finished)}/{self.total} pairs done"
+        self.bar.update(steps, f"{pairs}; {self.status.name} " + ", ".join(shown))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
     def handle(self, event: PairEvent) -> None:
         pair = event.pair
@@ -160,9 +205,10 @@ class Collector:
             self.starts[pair] = self.starts.get(pair, 0) + 1
             if self.log_dir is not None:  # a retry starts its log afresh
                 (self.log_dir / f"{pair.key}.jsonl").write_text("")
-            host, pid, _ = event.attempt.split(":")
+            self.latest.pop(pair, None)
+            host, pid, _ = event.attempt.rsplit(":", 2)
             again = self.starts[pair] > 1
-            log.info(
+            self._say(
                 "pair %s %s on %s (pid %s)%s",
                 pair.label,
                 "restarted" if again else "started",
@@ -172,12 +218,15 @@ class Collector:
             )
         elif event.attempt != self.attempt.get(pair):
             return  # a lost attempt's late event
-        elif event.kind == "evaluated" and self.log_dir is not None:
-            with open(self.log_dir / f"{pair.key}.jsonl", "a") as f:
-                f.write(event.text.rstrip("\n") + "\n")
+        elif event.kind == "evaluated":
+            if self.log_dir is not None:
+                with open(self.log_dir / f"{pair.key}.jsonl", "a") as f:
+                    f.write(event.text.rstrip("\n") + "\n")
+            if self.bar is not None:
+                self.latest[pair] = json.loads(event.text)
         elif event.kind == "finished":
             self.finished.add(pair)
-            log.info(
+            self._say(
                 "pair %s finished in %.0f s (%d/%d pairs done)",
                 pair.label,
                 event.wall_s,
@@ -193,6 +242,7 @@ def run_pairs(
     cfg: FanOutConfig,
     log_dir: Path | None = None,
     on_result: Callable[[Pair, Any], None] | None = None,
+    status: StatusLine | None = None,
 ) -> list:
     """Run `fn(pair.algo, pair.env, *args, report=...)` for every pair where `cfg` says.
 
@@ -203,6 +253,7 @@ def run_pairs(
         cfg: where to run them.
         log_dir: folder for the evaluation logs, None for none.
         on_result: called in the driver with each pair's result as it arrives.
+        status: the status line to keep on the terminal, None for none.
 
     Returns:
         fn's results, one per pair in `pairs` order.
@@ -210,17 +261,22 @@ def run_pairs(
     Raises ClusterError when the cluster cannot be reached or a pair is lost more than
     `cfg.max_retries` times; an exception of `fn` itself is raised as it is.
     """
-    collector = Collector(pairs, log_dir)
+    collector = Collector(pairs, log_dir, status)
     arrived = on_result or (lambda pair, result: None)
-    if cfg.address:
-        return _run_ray(fn, pairs, args, cfg, collector, arrived)
-    if cfg.workers <= 1:
-        results = []
-        for p in pairs:
-            results.append(run_pair(fn, p, args, _Direct(collector)))
-            arrived(p, results[-1])
-        return results
-    return _run_pool(fn, pairs, args, cfg.workers, collector, arrived)
+    try:
+        if cfg.address:
+            from cluster.repro_fanout_ray import run_ray  # imports ray
+
+            return run_ray(fn, pairs, args, cfg, collector, arrived)
+        if cfg.workers <= 1:
+            results = []
+            for p in pairs:
+                results.append(run_pair(fn, p, args, _Direct(collector)))
+                arrived(p, results[-1])
+            return results
+        return _run_pool(fn, pairs, args, cfg.workers, collector, arrived)
+    finally:
+        collector.close()
 
 
 class _Direct:
@@ -231,6 +287,7 @@ class _Direct:
 
     def put(self, event: PairEvent) -> None:
         self.collector.handle(event)
+        self.collector.tick()
 
 
 _pool_events: Any = None  # the event queue of a local pool's worker process
@@ -251,6 +308,7 @@ def _drain_queue(events: Any, collector: Collector, block_s: float = 0.0) -> Non
         try:
             collector.handle(events.get(timeout=block_s) if block_s else events.get_nowait())
         except queue.Empty:
+            collector.tick()
             return
 
 
@@ -282,113 +340,3 @@ def _run_pool(
             log.warning("the local workers' last events did not arrive; logs may be short")
             break
     return [f.result() for f in futures]
-
-
-def runtime_env(ship_code: bool) -> dict | None:
-    """Ray job runtime environment shipping our four packages to every node (or None)."""
-    if not ship_code:
-        return None
-    import actors
-    import buffer_service
-    import cluster
-    import learner
-
-    dirs = [os.path.dirname(m.__file__) for m in (actors, buffer_service, learner, cluster)]
-    return {"py_modules": dirs, "excludes": ["__pycache__", "*.pyc"]}
-
-
-class _Board:
-    """Ray actor (no CPU) holding the pairs' events until the driver takes them: a task
-    cannot call back into the driver, and a pair on another node cannot write its files."""
-
-    def __init__(self) -> None:
-        self.events: list[PairEvent] = []
-
-    def put(self, event: PairEvent) -> None:
-        self.events.append(event)
-
-    def take(self) -> list[PairEvent]:
-        out, self.events = self.events, []
-        return out
-
-    def flush(self) -> None:
-        """Nothing: a caller waits on it to know its earlier calls have run."""
-
-
-class _BoardSink:
-    def __init__(self, board: Any):
-        self.board = board
-
-    def put(self, event: PairEvent) -> None:
-        self.board.put.remote(event)  # Ray runs one caller's calls to an actor in order
-
-
-def _ray_pair(fn: PairFn, pair: Pair, args: tuple, board: Any) -> Any:
-    """The body of a pair's Ray task."""
-    import ray
-
-    result = run_pair(fn, pair, args, _BoardSink(board))
-    # Every event is on the board before the driver sees the result: this call runs after
-    # this task's earlier puts.
-    ray.get(board.flush.remote())
-    return result
-
-
-def _run_ray(
-    fn: PairFn,
-    pairs: Sequence[Pair],
-    args: tuple,
-    cfg: FanOutConfig,
-    collector: Collector,
-    arrived: Callable[[Pair, Any], None],
-) -> list:
-    """Every pair as a Ray task on the cluster at `cfg.address`."""
-    from cluster import ray_cluster
-
-    ray_cluster.apply_ray_environment()  # before `import ray`: it reads them at import
-    import ray
-    from ray.exceptions import RayError, RayTaskError
-
-    where = ray_cluster.connect(cfg.address, num_cpus=1, runtime_env=runtime_env(cfg.ship_code))
-    pending: list = []
-    try:
-        _check_resources(ray.nodes(), cfg.cpus_per_pair)
-        log.info("%s; %d pairs as Ray tasks of %g CPUs each", where, len(pairs), cfg.cpus_per_pair)
-        board = ray.remote(num_cpus=0)(_Board).remote()
-        task = ray.remote(_ray_pair).options(
-            num_cpus=cfg.cpus_per_pair, max_retries=cfg.max_retries, retry_exceptions=False
-        )
-        refs = {task.remote(fn, p, args, board): p for p in pairs}
-        pending = list(refs)
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1, timeout=POLL_S)
-            for event in ray.get(board.take.remote()):
-                collector.handle(event)
-            for ref in ready:
-                try:
-                    arrived(refs[ref], ray.get(ref))
-                except RayTaskError:
-                    raise  # the pair's own exception (also an instance of its class)
-                except RayError as e:
-                    raise ClusterError(
-                        f"pair {refs[ref].label} was lost {cfg.max_retries + 1} times "
-                        f"(--max-retries {cfg.max_retries}): {e}"
-                    ) from None
-        return ray.get(list(refs))
-    finally:
-        for ref in pending:  # an error or Ctrl-C: stop the pairs still running
-            ray.cancel(ref, force=True)
-        ray.shutdown()
-
-
-def _check_resources(nodes: list[dict], cpus_per_pair: float) -> None:
-    """Warn when no live node offers `cpus_per_pair` CPUs: Ray then waits (an autoscaler
-    may add such a node) rather than fail."""
-    most = max((n["Resources"].get("CPU", 0.0) for n in nodes if n.get("Alive")), default=0.0)
-    if most < cpus_per_pair:
-        log.warning(
-            "no node of this cluster has %g CPUs (the largest has %g); the pairs wait until "
-            "one joins (lower --cpus-per-pair, or add nodes)",
-            cpus_per_pair,
-            most,
-        )

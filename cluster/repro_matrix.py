@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from actors.envs.registry import make_env
-from cluster.repro_fanout import FanOutConfig, Pair, run_pairs
+from cluster.repro_fanout import FanOutConfig, Pair, StatusLine, run_pairs
 
 log = logging.getLogger(__name__)
 
@@ -130,11 +130,14 @@ def run(
     overrides: list[str],
     fan: FanOutConfig,
     log_dir: Path | None = None,
+    total_steps: int = 0,
 ) -> list[Curve]:
     """Every (algo, game) pair where `fan` says; curves in (game, algo) order, evaluations in
-    log_dir/<game>__<algo>.jsonl as they happen."""
+    log_dir/<game>__<algo>.jsonl as they happen. With `total_steps` (every pair's t_max
+    together), a status line shows the env steps done and each pair's latest median return."""
     pairs = [Pair(a, g) for g in games for a in algos]
-    return run_pairs(run_pair, pairs, (seeds, overrides, 1), fan, log_dir)
+    status = StatusLine(total_steps, "returns", "return") if total_steps else None
+    return run_pairs(run_pair, pairs, (seeds, overrides, 1), fan, log_dir, None, status)
 
 
 def optimum_of(game: str, env_args: dict) -> float:

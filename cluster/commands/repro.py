@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +19,7 @@ from cluster.commands import add_command
 from cluster.ray_cluster import UnreachableClusterError
 from cluster.repro_fanout import FanOutConfig
 from cluster.run_config import load_train_config
-from cluster.trainer import Progress, write_json
+from cluster.trainer import write_json
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -259,19 +258,12 @@ def cmd_curves(
         if not curves:
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
-        done = threading.Event()
-        watcher = threading.Thread(target=_watch, args=(out / "evals", t_max, done), daemon=True)
-        watcher.start()
-        try:
-            checkpoints = out / "checkpoints" if args.checkpoints else None
-            curves = _run(
-                lambda: repro_curves.run(
-                    algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints
-                )
+        checkpoints = out / "checkpoints" if args.checkpoints else None
+        curves = _run(
+            lambda: repro_curves.run(
+                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max
             )
-        finally:
-            done.set()
-            watcher.join()
+        )
     summary = repro_curves.summarise(curves)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
@@ -295,27 +287,6 @@ def cmd_curves(
     return 0
 
 
-def _watch(log_dir: Path, t_max: int, done: threading.Event) -> None:
-    """Progress over every pair from the evaluation logs the workers append to: env steps
-    done (each pair's latest evaluation) and each pair's latest median win rate."""
-    bar = Progress(t_max)
-    while not done.wait(2.0):
-        steps, wins = 0, []
-        for path in sorted(log_dir.glob("*.jsonl")):
-            lines = path.read_text().splitlines()
-            if not lines:
-                continue
-            try:
-                last = json.loads(lines[-1])
-            except json.JSONDecodeError:  # a line being written
-                continue
-            steps += int(last["t_env"])
-            won = sorted(last["won"])
-            wins.append(f"{last['algo']}@{last['env'].split('/')[-1]} {won[len(won) // 2]:.2f}")
-        bar.update(steps, "win " + ", ".join(wins))
-    bar.close()
-
-
 def cmd_matrix(args: argparse.Namespace) -> int:
     algos = [a for a in args.algos.split(",") if a]
     games = [g for g in args.games.split(",") if g]
@@ -329,14 +300,17 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
-    optimum = {}
+    optimum, t_max = {}, 0
     for g in games:  # validates every (algo, game) config before any training starts
         cfgs = [load_train_config(a, g, [], overrides) for a in algos]
         optimum[g] = repro_matrix.optimum_of(g, cfgs[0].env.args)
+        t_max += sum(c.run.t_max for c in cfgs)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = _run(lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals"))
+    curves = _run(
+        lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+    )
     summary = repro_matrix.summarise(curves, optimum)
     write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
