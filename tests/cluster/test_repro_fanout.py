@@ -11,7 +11,14 @@ import pytest
 
 from cluster.cli import build_parser, main
 from cluster.commands.repro import fan_out_config
-from cluster.repro_fanout import Collector, FanOutConfig, Pair, PairEvent, run_pairs
+from cluster.repro_fanout import (
+    Collector,
+    FanOutConfig,
+    Pair,
+    PairEvent,
+    StatusLine,
+    run_pairs,
+)
 
 COMMANDS = {
     "matrix": ["repro", "matrix", "--out", "OUT"],
@@ -113,6 +120,24 @@ def test_collector_restarts_a_log_and_drops_a_lost_attempts_lines(tmp_path, capl
     assert _lines(log) == ['{"t_env": 2}']
     assert c.finished == {pair}
     assert "pair vdn@matrix/two_step finished in 3 s (1/1 pairs done)" in caplog.text
+
+
+def test_status_line_counts_each_pairs_latest_evaluation(tmp_path, caplog):
+    pairs = [Pair("vdn", "matrix/two_step"), Pair("iql", "matrix/two_step")]
+    c = Collector(pairs, None, StatusLine(total_steps=200, key="returns", name="return"))
+    c.bar.tty = False  # its log line, also under pytest -s on a terminal
+    rows = [(pairs[0], 22, [7.0, 8.0, 8.0]), (pairs[1], 2, [7.0]), (pairs[0], 42, [8.0])]
+    for pair in pairs:
+        c.handle(PairEvent(pair, "started", f"h:1:{pair.algo}"))
+    for pair, t, returns in rows:
+        line = json.dumps({"t_env": t, "returns": returns})
+        c.handle(PairEvent(pair, "evaluated", f"h:1:{pair.algo}", line))
+    with caplog.at_level("INFO", logger="cluster.trainer"):
+        c.tick()
+    assert (
+        "t_env 44/200 0/2 pairs done; return vdn@matrix/two_step 8.00, iql@matrix/two_step 7.00"
+        in caplog.text
+    )
 
 
 def report_steps(algo: str, env: str, n: int, report=None) -> str:
