@@ -103,6 +103,7 @@ def run_ray(
             num_cpus=cfg.cpus_per_pair, max_retries=cfg.max_retries, retry_exceptions=False
         )
         refs = {task.remote(fn, p, args, board): p for p in pairs}
+        results: dict[Pair, Any] = {}
         pending = list(refs)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=POLL_S)
@@ -111,15 +112,17 @@ def run_ray(
             collector.tick()
             for ref in ready:
                 try:
-                    arrived(refs[ref], ray.get(ref))
+                    results[refs[ref]] = ray.get(ref)
                 except RayTaskError:
                     raise  # the pair's own exception (also an instance of its class)
-                except RayError as e:
+                except RayError as e:  # lost more often than retried, or never started
                     raise ClusterError(
-                        f"pair {refs[ref].label} was lost {cfg.max_retries + 1} times "
-                        f"(--max-retries {cfg.max_retries}): {e}"
+                        f"pair {refs[ref].label} did not run to the end on the cluster (a "
+                        f"lost worker is retried {cfg.max_retries} times, --max-retries): "
+                        f"{type(e).__name__}: {e}"
                     ) from None
-        return ray.get(list(refs))
+                arrived(refs[ref], results[refs[ref]])
+        return [results[p] for p in pairs]
     finally:
         for ref in pending:  # an error or Ctrl-C: stop the pairs still running
             ray.cancel(ref, force=True)
