@@ -192,7 +192,8 @@ class Collector:
             shown.append(f"{pair.label} {values[len(values) // 2]:.2f}")
         steps = sum(int(row.get("t_env", 0)) for row in self.latest.values())
         pairs = f"{len(self.finished)}/{self.total} pairs done"
-        self.bar.update(steps, f"{pairs}; {self.status.name} " + ", ".join(shown))
+        latest = f"; {self.status.name} " + ", ".join(shown) if shown else ""
+        self.bar.update(steps, pairs + latest)
 
     def close(self) -> None:
         if self.bar is not None:
