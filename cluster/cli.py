@@ -20,6 +20,7 @@ from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
 from cluster.config import ConfigError
+from cluster.ray_cluster import ClusterError
 from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")
@@ -73,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     except NonFiniteLossError as e:
         print(f"credit: error: {e}", file=sys.stderr)
         return 3
+    except ClusterError as e:  # e.g. a repro pair lost more often than it may be retried
+        print(f"credit: error: {e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("credit: interrupted", file=sys.stderr)
         return 130

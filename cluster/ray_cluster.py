@@ -15,6 +15,7 @@ import os
 import secrets
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -30,6 +31,10 @@ LOOPBACK = "127.0.0.1"
 
 class ClusterError(RuntimeError):
     """The Ray cluster could not be started, reached or stopped."""
+
+
+class UnreachableClusterError(ClusterError):
+    """No Ray cluster answers at the address a command was given."""
 
 
 def state_dir() -> Path:
@@ -266,10 +271,39 @@ def down(grace_s: float = 10.0) -> int:
     return len(pids)
 
 
-def connect(address: str | None, num_cpus: int) -> str:
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Raise ClusterError unless something accepts TCP connections at `address` ("host:port",
+    optionally "ray://host:port"). `ray.init` on an address nobody listens at retries for
+    minutes and logs a warning every few seconds; this answers at once, with what to do."""
+    hostport = address.removeprefix("ray://")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not port.isdigit():
+        raise UnreachableClusterError(
+            f"--address takes 'auto' or HOST:PORT of a Ray head, got {address!r}"
+        )
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise UnreachableClusterError(
+            f"no Ray cluster answers at {address} ({e.strerror or e}); start one with "
+            "`credit cluster up --num-cpus N` (then use --address auto), or pass "
+            "--address HOST:PORT of a running Ray head (`ray start --head` prints it)"
+        ) from None
+
+
+def connect(address: str | None, num_cpus: int, runtime_env: dict | None = None) -> str:
     """Connect this driver to `address` ("auto" = the recorded cluster, else Ray's own
-    discovery), or with no address start a private local Ray instance on loopback for the
-    lifetime of this process. Returns a description."""
+    discovery; or "host:port"), or with no address start a private local Ray instance on
+    loopback for the lifetime of this process. Returns a description.
+
+    Args:
+        address: None, "auto" or "host:port" of a Ray head (GCS port).
+        num_cpus: CPUs of the private instance (ignored when joining a cluster).
+        runtime_env: Ray runtime environment of this job (e.g. `py_modules` to ship code to
+            every node).
+
+    Raises UnreachableClusterError when `address` names no reachable cluster.
+    """
     apply_ray_environment()
     import ray
 
@@ -278,14 +312,36 @@ def connect(address: str | None, num_cpus: int) -> str:
         # KubeRay and `ray up` set it, or a head started on this machine with `ray start`).
         state = ClusterState.load()
         address = state.address if state is not None else "auto"
+        if state is not None:
+            try:
+                check_reachable(address)
+            except UnreachableClusterError as e:
+                raise UnreachableClusterError(
+                    f"--address auto: the cluster recorded in {state_dir() / 'state.json'} is "
+                    f"gone: {e}"
+                ) from None
+    elif address:
+        check_reachable(address)
     if address:
-        ray.init(address=address, logging_level="WARNING", log_to_driver=True)
+        try:
+            ray.init(
+                address=address,
+                logging_level="WARNING",
+                log_to_driver=True,
+                runtime_env=runtime_env,
+            )
+        except ConnectionError as e:  # "auto" found no running instance
+            raise UnreachableClusterError(
+                f"no Ray cluster found for --address {address}: {e} Start one with "
+                "`credit cluster up --num-cpus N`, or pass --address HOST:PORT"
+            ) from None
         return f"joined Ray cluster at {address}"
     ray.init(
         address="local",  # always a new instance, never the latest `ray start` head
         num_cpus=num_cpus,
         include_dashboard=False,
         logging_level="WARNING",
+        runtime_env=runtime_env,
         _node_ip_address=LOOPBACK,
     )
     return f"started a local Ray instance with {num_cpus} CPUs on {LOOPBACK}"

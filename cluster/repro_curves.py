@@ -2,7 +2,8 @@
 Figs. 5.10-5.13) and `credit repro smac` (the value family and RDN).
 
 Each (algorithm, env) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a small
-process pool. Every evaluation is appended to `evals/<env>__<algo>.jsonl` as it happens (a long
+process pool or as Ray tasks on a cluster (`cluster.repro_fanout`). Every evaluation is appended
+to `evals/<env>__<algo>.jsonl` as it happens (a long
 run that dies keeps what it measured, and `load_evals` rebuilds curves from those files); at
 the end summary.json, curves.json and one <prefix>_<map>.png per env are written: test win rate
 and test return against env steps, win rate against wall time, and the learner diagnostics
@@ -24,12 +25,17 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
+import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from cluster.repro_fanout import FanOutConfig, Pair, StatusLine, run_pairs
 
 log = logging.getLogger(__name__)
 
@@ -68,18 +74,31 @@ class Curve:
     wall: list[float] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class PairOutput:
+    """What a pair's process hands back: its curve and, when asked for, its final checkpoint
+    as files (path relative to the checkpoint folder -> bytes), written by the driver so that
+    a pair on another node saves into the driver's output folder."""
+
+    curve: Curve
+    checkpoint: tuple[tuple[str, bytes], ...] = ()
+
+
 def run_pair(
     algo: str,
     env: str,
     seeds: int,
     overrides: list[str],
     threads: int,
-    log_dir: Path | None,
-    checkpoint_dir: Path | None = None,
-) -> Curve:
-    """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer; with
-    `checkpoint_dir`, save its checkpoint (every seed, `credit train`'s format) to
-    checkpoint_dir/<env>__<algo>/ at the end."""
+    checkpoint: bool = False,
+    report: Callable[[str], None] | None = None,
+) -> PairOutput:
+    """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer.
+
+    Args:
+        checkpoint: also return the final checkpoint (every seed, `credit train`'s format).
+        report: called with one JSON line per evaluation (the pair's evaluation log).
+    """
     import torch
 
     from cluster.run_config import load_train_config
@@ -90,9 +109,6 @@ def run_pair(
     trainer = LocalTrainer(cfg, n_ensemble=seeds)
     curve = Curve(algo, env, [], [], [], 0.0)
     walls: list[float] = []
-    path = log_dir / f"{env.replace('/', '-')}__{algo}.jsonl" if log_dir else None
-    if path:
-        path.write_text("")
     started = time.monotonic()
 
     def on_eval(records) -> None:
@@ -103,7 +119,7 @@ def run_pair(
         diag = {k: v for k, v in means.items() if k in LEARNER_KEYS}
         curve.learner.append(diag)
         walls.append(round(time.monotonic() - started, 1))
-        if path:
+        if report is not None:
             line = {
                 "env": env,
                 "algo": algo,
@@ -113,15 +129,22 @@ def run_pair(
                 "wall_s": walls[-1],
                 **diag,
             }
-            with open(path, "a") as f:
-                f.write(json.dumps(line) + "\n")
+            report(json.dumps(line))
 
     trainer.train(on_eval=on_eval)
     if not curve.t_env or curve.t_env[-1] != trainer.core.t_env:
         on_eval(trainer.core.evaluate())
-    if checkpoint_dir is not None:
-        trainer.save(checkpoint_dir / f"{env.replace('/', '-')}__{algo}")
-    return Curve(
+    files: tuple[tuple[str, bytes], ...] = ()
+    if checkpoint:
+        with tempfile.TemporaryDirectory() as tmp:
+            trainer.save(Path(tmp) / "ckpt")
+            root = Path(tmp) / "ckpt"
+            files = tuple(
+                (str(f.relative_to(root)), f.read_bytes())
+                for f in sorted(root.rglob("*"))
+                if f.is_file()
+            )
+    done = Curve(
         algo,
         env,
         curve.t_env,
@@ -131,6 +154,20 @@ def run_pair(
         curve.learner,
         walls,
     )
+    return PairOutput(done, files)
+
+
+def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None:
+    """Write a pair's checkpoint files (PairOutput.checkpoint) into `folder`, replacing what
+    was there only once every file is written."""
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for rel, data in files:
+        path = tmp / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    shutil.rmtree(folder, ignore_errors=True)
+    os.replace(tmp, folder)
 
 
 def load_evals(log_dir: Path, algos: list[str], envs: list[str]) -> list[Curve]:
@@ -277,19 +314,23 @@ def run(
     envs: list[str],
     seeds: int,
     overrides: list[str],
-    workers: int,
+    fan: FanOutConfig,
     log_dir: Path | None = None,
     checkpoint_dir: Path | None = None,
+    total_steps: int = 0,
 ) -> list[Curve]:
-    """Every (algo, env) pair, `workers` at a time; curves in (env, algo) order."""
-    jobs = [(a, g) for g in envs for a in algos]
-    args = (seeds, overrides, 1, log_dir, checkpoint_dir)
-    if workers <= 1:
-        return [run_pair(a, g, *args) for a, g in jobs]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(run_pair, a, g, *args) for a, g in jobs]
-        curves = []
-        for (a, g), f in zip(jobs, futures, strict=True):
-            curves.append(f.result())
-            log.info("%s on %s done in %.0f s", a, g, curves[-1].wall_s)
-        return curves
+    """Every (algo, env) pair where `fan` says; curves in (env, algo) order. Each pair's
+    evaluations go to log_dir/<env>__<algo>.jsonl as they happen and, with `checkpoint_dir`,
+    its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes. With
+    `total_steps` (every pair's t_max together), a status line shows the env steps done and
+    each pair's latest median win rate."""
+    pairs = [Pair(a, g) for g in envs for a in algos]
+
+    def on_result(pair: Pair, out: PairOutput) -> None:
+        if checkpoint_dir is not None:
+            write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
+
+    args = (seeds, overrides, 1, checkpoint_dir is not None)
+    status = StatusLine(total_steps, "won", "win") if total_steps else None
+    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result, status)
+    return [o.curve for o in outputs]

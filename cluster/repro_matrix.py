@@ -1,20 +1,24 @@
 """Seed Fig. 5.3 on both matrix games: every algorithm, N seeds trained side by side.
 
 Each (algorithm, game) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a
-small process pool. Writes summary.json, curves.json and matrix_<game>.png.
+small process pool or as Ray tasks on a cluster (`cluster.repro_fanout`). Writes
+evals/<game>__<algo>.jsonl as each pair evaluates, then summary.json, curves.json and
+matrix_<game>.png.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from actors.envs.registry import make_env
+from cluster.repro_fanout import FanOutConfig, Pair, StatusLine, run_pairs
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +39,16 @@ class Curve:
     rdn_diagnostics: list[dict] | None = None
 
 
-def run_pair(algo: str, game: str, seeds: int, overrides: list[str], threads: int) -> Curve:
-    """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer."""
+def run_pair(
+    algo: str,
+    game: str,
+    seeds: int,
+    overrides: list[str],
+    threads: int,
+    report: Callable[[str], None] | None = None,
+) -> Curve:
+    """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer; `report` gets one
+    JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s})."""
     import torch
 
     from cluster.run_config import load_train_config
@@ -48,11 +60,16 @@ def run_pair(algo: str, game: str, seeds: int, overrides: list[str], threads: in
     t_env: list[int] = []
     returns: list[list[float]] = []
 
+    started = time.monotonic()
+
     def on_eval(records) -> None:
         t_env.append(records[0].t_env)
         returns.append([r.test_return_mean for r in records])
+        if report is not None:
+            wall = round(time.monotonic() - started, 1)
+            line = {"env": game, "algo": algo, "t_env": t_env[-1], "returns": returns[-1]}
+            report(json.dumps({**line, "wall_s": wall}))
 
-    started = time.monotonic()
     trainer.train(on_eval=on_eval)
     if not t_env or t_env[-1] != trainer.core.t_env:
         on_eval(trainer.core.evaluate())
@@ -107,18 +124,20 @@ def plot(curves: list[Curve], game: str, path: Path) -> None:
 
 
 def run(
-    algos: list[str], games: list[str], seeds: int, overrides: list[str], workers: int
+    algos: list[str],
+    games: list[str],
+    seeds: int,
+    overrides: list[str],
+    fan: FanOutConfig,
+    log_dir: Path | None = None,
+    total_steps: int = 0,
 ) -> list[Curve]:
-    jobs = [(a, g) for g in games for a in algos]
-    if workers <= 1:
-        return [run_pair(a, g, seeds, overrides, 1) for a, g in jobs]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(run_pair, a, g, seeds, overrides, 1) for a, g in jobs]
-        curves = []
-        for (a, g), f in zip(jobs, futures, strict=True):
-            curves.append(f.result())
-            log.info("%s on %s done in %.0f s", a, g, curves[-1].wall_s)
-        return curves
+    """Every (algo, game) pair where `fan` says; curves in (game, algo) order, evaluations in
+    log_dir/<game>__<algo>.jsonl as they happen. With `total_steps` (every pair's t_max
+    together), a status line shows the env steps done and each pair's latest median return."""
+    pairs = [Pair(a, g) for g in games for a in algos]
+    status = StatusLine(total_steps, "returns", "return") if total_steps else None
+    return run_pairs(run_pair, pairs, (seeds, overrides, 1), fan, log_dir, None, status)
 
 
 def optimum_of(game: str, env_args: dict) -> float:

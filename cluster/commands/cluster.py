@@ -48,6 +48,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         raise UsageError(str(e)) from None
     print(f"Ray cluster up at {state.address} ({state.num_cpus} CPUs); train on it with:")
     print("  credit train --mode cluster --address auto --actors 2 ...")
+    print("  credit repro matrix --address auto --out DIR   (or any repro experiment)")
     return 0
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,8 +16,10 @@ from types import ModuleType
 from cluster import repro_curves, repro_emcac, repro_matrix, repro_redundancy, repro_smac
 from cluster.cli_errors import UsageError
 from cluster.commands import add_command
+from cluster.ray_cluster import UnreachableClusterError
+from cluster.repro_fanout import FanOutConfig
 from cluster.run_config import load_train_config
-from cluster.trainer import Progress, write_json
+from cluster.trainer import write_json
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -28,15 +29,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(
         sub,
         "repro",
-        "Reproduce the seed's experiments; each writes summary.json, its curves and PNG "
-        "plots under --out.",
+        "Reproduce the seed's experiments, in local processes or as Ray tasks on a cluster "
+        "(--address); each writes summary.json, its curves and PNG plots under --out.",
     )
     rsub = p.add_subparsers(dest="repro_command", required=True, metavar="EXPERIMENT")
     m = add_command(
         rsub,
         "matrix",
-        "Seed Fig. 5.3: train every algorithm on both matrix games; writes "
-        "OUT/summary.json, curves.json and matrix_<game>.png.",
+        "Seed Fig. 5.3: train every algorithm on both matrix games, in local processes or "
+        "on a Ray cluster (--address); writes OUT/evals/*.jsonl as it runs, then "
+        "summary.json, curves.json and matrix_<game>.png.",
     )
     m.add_argument("--seeds", type=int, default=8, help="seeds per algorithm and game (default 8)")
     m.add_argument("--out", required=True, help="output folder")
@@ -58,8 +60,41 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_run_options(m: argparse.ArgumentParser) -> None:
-    """--workers and --set, shared by every experiment."""
-    m.add_argument("--workers", type=int, default=2, help="processes running pairs in parallel")
+    """Where the (algorithm, env) pairs run, and --set; shared by every experiment."""
+    m.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="local processes running pairs in parallel (without --address)",
+    )
+    m.add_argument(
+        "--address",
+        default=None,
+        metavar="auto|HOST:PORT",
+        help="run each (algorithm, env) pair as a Ray task on this cluster: 'auto' = the one "
+        "`credit cluster up` started (else Ray's discovery, e.g. RAY_ADDRESS), or a head's "
+        "HOST:PORT; results still land in --out (default: local processes)",
+    )
+    m.add_argument(
+        "--cpus-per-pair",
+        type=float,
+        default=1.0,
+        help="with --address: CPUs each pair's task asks for (default 1; a pair uses "
+        "run.torch_threads threads, 1 unless set)",
+    )
+    m.add_argument(
+        "--max-retries",
+        type=int,
+        default=3,
+        help="with --address: restarts of a pair whose worker process or node dies (default 3)",
+    )
+    m.add_argument(
+        "--no-ship-code",
+        dest="ship_code",
+        action="store_false",
+        help="with --address: run the credit installed on the nodes instead of uploading this "
+        "checkout's packages to them",
+    )
     m.add_argument(
         "--set",
         action="append",
@@ -67,6 +102,30 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+
+
+def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
+    """The run options of a repro command as a checked FanOutConfig (UsageError if bad)."""
+    cfg = FanOutConfig(
+        workers=args.workers,
+        address=args.address or None,
+        cpus_per_pair=args.cpus_per_pair,
+        max_retries=args.max_retries,
+        ship_code=args.ship_code,
+    )
+    try:
+        cfg.validate()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    return cfg
+
+
+def _run(run: Callable[[], list]) -> list:
+    """Run the pairs; an unreachable cluster is a usage error (exit 2, no traceback)."""
+    try:
+        return run()
+    except UnreachableClusterError as e:
+        raise UsageError(str(e)) from None
 
 
 def register_emcac(rsub: argparse._SubParsersAction) -> None:
@@ -182,6 +241,7 @@ def cmd_curves(
         raise UsageError("--algos and --envs must name at least one algorithm and env")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
@@ -198,17 +258,12 @@ def cmd_curves(
         if not curves:
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
-        done = threading.Event()
-        watcher = threading.Thread(target=_watch, args=(out / "evals", t_max, done), daemon=True)
-        watcher.start()
-        try:
-            checkpoints = out / "checkpoints" if args.checkpoints else None
-            curves = repro_curves.run(
-                algos, envs, args.seeds, overrides, args.workers, out / "evals", checkpoints
+        checkpoints = out / "checkpoints" if args.checkpoints else None
+        curves = _run(
+            lambda: repro_curves.run(
+                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max
             )
-        finally:
-            done.set()
-            watcher.join()
+        )
     summary = repro_curves.summarise(curves)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
@@ -232,27 +287,6 @@ def cmd_curves(
     return 0
 
 
-def _watch(log_dir: Path, t_max: int, done: threading.Event) -> None:
-    """Progress over every pair from the evaluation logs the workers append to: env steps
-    done (each pair's latest evaluation) and each pair's latest median win rate."""
-    bar = Progress(t_max)
-    while not done.wait(2.0):
-        steps, wins = 0, []
-        for path in sorted(log_dir.glob("*.jsonl")):
-            lines = path.read_text().splitlines()
-            if not lines:
-                continue
-            try:
-                last = json.loads(lines[-1])
-            except json.JSONDecodeError:  # a line being written
-                continue
-            steps += int(last["t_env"])
-            won = sorted(last["won"])
-            wins.append(f"{last['algo']}@{last['env'].split('/')[-1]} {won[len(won) // 2]:.2f}")
-        bar.update(steps, "win " + ", ".join(wins))
-    bar.close()
-
-
 def cmd_matrix(args: argparse.Namespace) -> int:
     algos = [a for a in args.algos.split(",") if a]
     games = [g for g in args.games.split(",") if g]
@@ -264,15 +298,19 @@ def cmd_matrix(args: argparse.Namespace) -> int:
             )
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
-    optimum = {}
+    optimum, t_max = {}, 0
     for g in games:  # validates every (algo, game) config before any training starts
         cfgs = [load_train_config(a, g, [], overrides) for a in algos]
         optimum[g] = repro_matrix.optimum_of(g, cfgs[0].env.args)
+        t_max += sum(c.run.t_max for c in cfgs)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = repro_matrix.run(algos, games, args.seeds, overrides, args.workers)
+    curves = _run(
+        lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+    )
     summary = repro_matrix.summarise(curves, optimum)
     write_json(out / "summary.json", summary)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
