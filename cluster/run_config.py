@@ -4,7 +4,7 @@ importlib.resources), user files and `--set` overrides."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from importlib.resources.abc import Traversable
 from typing import Any, Literal
@@ -104,6 +104,9 @@ class RunConfig:
             rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
+        max_policy_lag: drop sampled episodes more than this many versions behind the
+            learner before an update, in both modes (0 = keep all; off-policy learners
+            replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
     """
 
     t_max: int = 2_000_000
@@ -115,6 +118,7 @@ class RunConfig:
     device: str = "cpu"
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
+    max_policy_lag: int = 0
 
     def validate(self) -> None:
         try:
@@ -133,6 +137,8 @@ class RunConfig:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.save_interval < 0:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
+        if self.max_policy_lag < 0:
+            raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
 
 
 @dataclass(frozen=True)
@@ -143,8 +149,6 @@ class ClusterConfig:
         actors: rollout actors (Ray actors), each stepping run.num_envs envs.
         actor_cpus: CPUs Ray reserves per actor.
         publish_interval: learner updates between weight publications (one ray.put each).
-        max_policy_lag: drop sampled episodes more than this many versions behind the
-            learner (0 = keep all; off-policy learners replay old episodes by design).
         rate_slack: how many rounds of every actor may be in flight before inserts wait for
             the learner (the sample-to-insert limiter's error buffer, in rounds).
         fsync: the buffer service fsyncs its log before acknowledging an insert.
@@ -159,7 +163,6 @@ class ClusterConfig:
     actors: int = 2
     actor_cpus: float = 1.0
     publish_interval: int = 1
-    max_policy_lag: int = 0
     rate_slack: int = 2
     fsync: bool = True
     sample_timeout_s: float = 30.0
@@ -174,8 +177,6 @@ class ClusterConfig:
         for name in ("publish_interval", "rate_slack"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.max_policy_lag < 0:
-            raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
         if self.sample_timeout_s <= 0:
             raise ValueError(f"sample_timeout_s must be > 0, got {self.sample_timeout_s}")
         if not self.bind_host:
@@ -370,12 +371,21 @@ def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
     if value:
         return DataPlan((replay,), "replay", bs, rp.updates_per_episode)
     capacity = cfg.cycling.capacity if spec.extended else n_new
+    cycling_limiter = limiter(capacity / n_new, capacity, capacity)
+    if spec.extended and bs > capacity:
+        # No step until the replay table also holds a batch: the cycling table's inserts of
+        # that joint warm-up must pass its limiter, or actors and learner would wait on each
+        # other forever (and local mode would stop with RateLimitDeadlockError).
+        warmup = cycling_limiter.samples_per_insert * (bs - capacity)
+        cycling_limiter = replace(
+            cycling_limiter, error_buffer=cycling_limiter.error_buffer + warmup
+        )
     cycling = TableConfig(
         name="cycling",
         kind="cycling",
         capacity=capacity,
         max_times_sampled=max(1, capacity // n_new),
-        rate_limiter=limiter(capacity / n_new, capacity, capacity),
+        rate_limiter=cycling_limiter,
     )
     if not spec.extended:
         return DataPlan((cycling,), "cycling", capacity, 1 / n_new)
