@@ -96,10 +96,12 @@ class Progress:
 
 
 class TrainerCore:
-    """What every training loop shares: the learner, greedy evaluation, counters, checkpoints.
+    """What the training loop shares between modes: the learner, greedy evaluation, counters,
+    checkpoints.
 
-    Loops (`LocalTrainer` here, `cluster.cluster_trainer.ClusterTrainer`) own how episodes are
-    produced and batches reach `learner.step`; they report progress through `count`.
+    The loop (`cluster.loop.TrainLoop`) and its acting and data sides own how episodes are
+    produced and how batches reach `learner.step` (through `update`); they keep `t_env` and
+    `episodes` current.
     """
 
     def __init__(
