@@ -33,7 +33,12 @@ Behaviour of the two modes (the one place it is written down)
 * Resume: cluster mode keeps the buffer service's durable log and snapshots
   (`OUT/buffer/data`); local mode writes its tables into every checkpoint, in the same
   snapshot format (`checkpoint/buffer/member-k`, readable by `credit buffer verify`), and
-  restores them, so a resumed local run continues with the replay it had.
+  restores them, so a resumed local run continues with the replay it had (exactly as if it
+  had not stopped, for envs without hidden random state). Each checkpoint writes the whole
+  tables, so mind run.save_interval with a large replay.capacity.
+* Typed messages: what crosses a process boundary is a frozen dataclass of
+  `cluster.messages`; an actor receives only its `ActorConfig`, whose acting network is the
+  learner's description of it (`Learner.acting`, `learner.networks.ActingSpec`).
 """
 
 from __future__ import annotations
