@@ -201,7 +201,7 @@ class TrainLoop:
             core.episodes += episodes
             for pair in self.data.batches(episodes):
                 self._update(pair)
-            core.periodic(evaluated, bar, self.state)
+            core.periodic(evaluated, bar, self.save)
         if bar:
             bar.close()
 

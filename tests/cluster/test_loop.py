@@ -217,3 +217,14 @@ def test_local_buffer_writes_and_reads_the_service_snapshot_format(tmp_path):
     copy = LocalBuffer(buf.tables, schema=buf.state.schema)
     copy.read(tmp_path / "snap")
     assert copy.stats() == buf.stats()
+
+
+def test_periodic_checkpoints_hold_the_tables(tmp_path):
+    cfg = _cfg("vdn", "matrix/two_step", "run.t_max=100", "run.save_interval=40")
+    trainer = LocalTrainer(cfg, checkpoint_dir=tmp_path / "ckpt")
+    trainer.train()  # no save at the end: only the periodic ones
+    saved = torch.load(tmp_path / "ckpt" / "trainer.pt", weights_only=False)
+    assert 40 <= saved["t_env"] < 100
+    copy = LocalBuffer(trainer.data.plan.tables)
+    copy.read(tmp_path / "ckpt" / "buffer" / "member-0")
+    assert copy.stats()["tables"]["replay"]["inserts"] == saved["episodes"]
