@@ -78,5 +78,5 @@ def test_learning_curves_of_both_modes_agree_within_noise_over_three_seeds(tmp_p
             assert summary["t_env"] >= 1200 and summary["updates"] > 0
             finals[mode].append(_final_return(out, last=10))
     local, cluster = np.mean(finals["local"]), np.mean(finals["cluster"])
-    assert min(local, cluster) >= 6.5, finals  # both learned (at least the 7 of game 2A)
-    assert abs(local - cluster) <= 1.0, finals
+    assert min(local, cluster) >= 7.3, finals  # both learned (8 in most seeds, not the 7 trap)
+    assert abs(local - cluster) <= 0.7, finals
