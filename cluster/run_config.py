@@ -4,6 +4,7 @@ importlib.resources), user files and `--set` overrides."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from importlib.resources.abc import Traversable
@@ -17,6 +18,8 @@ from actors.policy import ExplorationConfig
 from buffer_service.config import RateLimiterConfig, TableConfig
 from cluster.config import ConfigError, build, deep_merge, parse_overrides, read_yaml, to_dict
 from learner.registry import get_algo
+
+log = logging.getLogger(__name__)
 
 CONFIG_PACKAGE = "cluster"  # the shipped layers are package data: cluster/configs/
 
@@ -296,8 +299,33 @@ def load_train_config(
     return build_train_config(data)
 
 
+def moved_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """`data` with keys that moved read into their new place, so that the config.yaml of an
+    older run still resumes: cluster.max_policy_lag (cluster mode only, before the one loop)
+    is run.max_policy_lag (both modes).
+
+    Raises:
+        ConfigError: both names given, with different values.
+    """
+    cluster = data.get("cluster")
+    if not isinstance(cluster, dict) or "max_policy_lag" not in cluster:
+        return data
+    cluster = dict(cluster)
+    lag = cluster.pop("max_policy_lag")
+    run = dict(data.get("run") or {})
+    if run.get("max_policy_lag", lag) != lag:
+        raise ConfigError(
+            f"cluster.max_policy_lag={lag} and run.max_policy_lag={run['max_policy_lag']}: "
+            "the key is run.max_policy_lag now; give it once"
+        )
+    run["max_policy_lag"] = lag
+    log.warning("cluster.max_policy_lag is run.max_policy_lag now (it applies in both modes)")
+    return {**data, "cluster": cluster, "run": run}
+
+
 def build_train_config(data: dict[str, Any]) -> TrainConfig:
     """A TrainConfig from complete data (`TrainConfig.to_yaml_dict()` form), validated."""
+    data = moved_keys(data)
     try:
         spec = get_algo(data.get("algo_name", ""))
     except ValueError as e:

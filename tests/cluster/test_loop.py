@@ -228,3 +228,12 @@ def test_periodic_checkpoints_hold_the_tables(tmp_path):
     copy = LocalBuffer(trainer.data.plan.tables)
     copy.read(tmp_path / "ckpt" / "buffer" / "member-0")
     assert copy.stats()["tables"]["replay"]["inserts"] == saved["episodes"]
+
+
+def test_an_older_runs_cluster_max_policy_lag_is_read_as_run_max_policy_lag():
+    old = load_train_config("vdn", "matrix/two_step", [], ["cluster.max_policy_lag=4"])
+    assert old.run.max_policy_lag == 4
+    with pytest.raises(ConfigError, match=r"run\.max_policy_lag"):
+        load_train_config(
+            "vdn", "matrix/two_step", [], ["cluster.max_policy_lag=4", "run.max_policy_lag=2"]
+        )
