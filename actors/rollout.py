@@ -16,7 +16,8 @@ from torch.nn import functional as F
 from actors.envs.base import VecEnv
 from actors.policy import ExplorationConfig, select_actions
 from buffer_service.episode import Episode
-from learner.networks import AgentNet, VersionedWeights
+from learner.batch import AgentInputLayout
+from learner.networks import ActingSpec, AgentNet, VersionedWeights
 
 
 def clock_seq(last: int) -> int:
@@ -70,6 +71,13 @@ class RolloutWorker:
             raise ValueError(
                 f"num_envs={venv.num_envs} is not a multiple of n_ensemble={n_ensemble}"
             )
+        self.layout = AgentInputLayout(venv.info.obs_shape, venv.info.n_actions, venv.info.n_agents)
+        if agent.input_dim != self.layout.width:
+            raise ValueError(
+                f"the acting network takes {agent.input_dim} inputs per agent, but this env's "
+                f"agent input (obs + last action + id, {self.layout.parts}) is "
+                f"{self.layout.width} wide"
+            )
         self.venv, self.agent, self.kind = venv, agent, policy_kind
         self.exploration, self.n_ensemble, self.actor_id = exploration, n_ensemble, actor_id
         self.info = venv.info
@@ -78,6 +86,30 @@ class RolloutWorker:
         self.episode_seq = 0
         self.next_seq = next_seq or (lambda last: last + 1)
         self.t_env = 0
+
+    @classmethod
+    def from_spec(
+        cls,
+        venv: VecEnv,
+        spec: ActingSpec,
+        exploration: ExplorationConfig,
+        actor_id: int = 0,
+        seed: int = 0,
+        next_seq: Callable[[int], int] | None = None,
+    ) -> RolloutWorker:
+        """A worker acting with its own network, built from the learner's description
+        (`Learner.acting`); its weights arrive through `set_weights`.
+
+        Args:
+            venv: the envs to step.
+            spec: the acting network's description.
+            exploration: epsilon schedule (value family).
+            actor_id, seed, next_seq: as for the constructor.
+        Returns:
+            A worker of one ensemble member.
+        """
+        agent = spec.build(1).requires_grad_(False)
+        return cls(venv, agent, spec.policy_kind, exploration, 1, actor_id, seed, next_seq)
 
     def follow(self, version: int) -> None:
         """Record that the (shared, in-process) agent network now holds `version`; used when
@@ -143,6 +175,7 @@ class RolloutWorker:
                     venv.get_state(),
                     venv.get_avail_actions(),
                 )
+                # the order of AgentInputLayout: own obs, last action, agent id
                 x = torch.cat([torch.from_numpy(obs[:, t]).reshape(e, m * n, -1), last, ids], -1)
                 out, h = self.agent(x, h)
                 av = torch.from_numpy(avail[:, t]).reshape(e, m * n, a).bool()

@@ -45,8 +45,8 @@ def main() -> None:
             "wall_s": round(records[0].wall_s, 1),
             "load_avg_1m": os.getloadavg()[0],
         }
-        if all(b.ready(plan.table, plan.batch_size) for b in trainer.buffers):
-            batch, _ = trainer._sample()
+        if all(b.ready(plan.table, plan.batch_size) for b in trainer.data.buffers):
+            batch, _ = trainer.data.sample()
             line.update(own_action_credit(trainer.core.learner, batch))
         text = json.dumps(line)
         print(text, flush=True)

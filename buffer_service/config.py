@@ -135,6 +135,8 @@ class BufferConfig:
         dedup_window: per actor, how many episode_seq values are remembered exactly; seqs
             further behind the actor's window are treated as already inserted.
         metrics_port: Prometheus HTTP port on 127.0.0.1 (None = no exporter, 0 = any).
+        seed: seed of the sampling RNG (None = from os.urandom); a launcher that wants a
+            repeatable run sets it.
     """
 
     host: str = "127.0.0.1"
@@ -158,6 +160,7 @@ class BufferConfig:
     repair: bool = False
     dedup_window: int = 1 << 16
     metrics_port: int | None = None
+    seed: int | None = None
 
     def validate(self) -> None:
         if not is_loopback(self.host) and not self.token:

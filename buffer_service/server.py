@@ -111,7 +111,8 @@ class BufferServer:
             self.storage = Storage(cfg.snapshot_dir, cfg.fsync, cfg.repair, cfg.tables)
         self.commits = GroupCommit(self.storage) if self.storage and cfg.fsync else None
         self.metrics = BufferMetrics(list(self.state.tables))
-        self.rng = random.Random(int.from_bytes(os.urandom(8), "little"))
+        seed = cfg.seed if cfg.seed is not None else int.from_bytes(os.urandom(8), "little")
+        self.rng = random.Random(seed)
         self.port = 0
         self.metrics_port: int | None = None
         self._server: asyncio.base_events.Server | None = None

@@ -36,6 +36,7 @@ def table_arg(t: TableConfig) -> str:
     r = t.rate_limiter
     return (
         f"name={t.name},kind={t.kind},capacity={t.capacity},max_times_sampled={t.max_times_sampled},"
+        f"replacement={str(t.replacement).lower()},"
         f"min_size_to_sample={r.min_size_to_sample},samples_per_insert={r.samples_per_insert},"
         f"error_buffer={r.error_buffer}"
     )
@@ -62,8 +63,10 @@ class BufferProcess:
         metrics: bool = True,
         token: str | None = None,
         host: str = "127.0.0.1",
+        seed: int | None = None,
     ):
         self.tables, self.schema, self.folder = tables, schema, Path(folder)
+        self.seed = seed
         self.fsync, self.metrics = fsync, metrics
         self.token = token or secrets.token_hex(16)
         self.host = host
@@ -81,6 +84,8 @@ class BufferProcess:
             cmd += ["--table", table_arg(t)]
         if not self.fsync:
             cmd.append("--no-fsync")
+        if self.seed is not None:
+            cmd += ["--seed", str(self.seed)]
         if self.metrics:
             cmd += ["--metrics-port", str(self.metrics_port or 0)]
         return cmd

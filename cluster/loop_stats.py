@@ -1,5 +1,5 @@
-"""Cumulative counters of the cluster learner loop (no Ray here, so tests and benchmarks can
-use them without connecting anywhere)."""
+"""Cumulative counters of the learner loop (`cluster.loop.TrainLoop`, both modes; no Ray
+here, so tests and benchmarks can use them without connecting anywhere)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ class LoopStats:
         sample_requests: sample requests sent to the buffer service.
         sample_s: seconds spent inside those requests (rate-limiter wait, transfer, decode).
         sample_timeouts: requests the rate limiter refused within cluster.sample_timeout_s.
+        dropped_stale: sampled episodes dropped for exceeding run.max_policy_lag.
         lag_counts: policy lag at sample time (learner version minus the episode's
             policy_version, clipped at 0) -> how many sampled episodes had it.
     """
@@ -31,6 +32,7 @@ class LoopStats:
     sample_requests: int = 0
     sample_s: float = 0.0
     sample_timeouts: int = 0
+    dropped_stale: int = 0
     lag_counts: Counter = field(default_factory=Counter)
 
     def snapshot(self) -> dict:
@@ -43,5 +45,6 @@ class LoopStats:
             "sample_requests": self.sample_requests,
             "sample_s": self.sample_s,
             "sample_timeouts": self.sample_timeouts,
+            "dropped_stale": self.dropped_stale,
             "lag_counts": dict(self.lag_counts),
         }

@@ -14,13 +14,21 @@ import time
 from typing import Any
 
 import ray
-import yaml
 
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker, clock_seq
 from buffer_service.client import BufferClient, RateLimitedError
+from cluster.messages import (
+    ActorConfig,
+    ActorCounters,
+    ActorDescription,
+    ActorStats,
+    ActorWork,
+    BufferAddress,
+    ProgressReport,
+    SyncReply,
+)
 from cluster.metrics import ActorMetrics, serve
-from cluster.run_config import build_train_config
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +43,7 @@ class Coordinator:
         self.version = -1
         self.weights: Any = None
         self.t_env, self.episodes = t_env, episodes
-        self.per_actor: dict[int, dict[str, int]] = {}
+        self.per_actor: dict[int, ActorWork] = {}
         self.stop = False
 
     def publish(self, version: int, boxed_ref: list) -> None:
@@ -44,18 +52,16 @@ class Coordinator:
         if version > self.version:
             self.version, self.weights = version, boxed_ref[0]
 
-    def sync(self, actor_id: int, have_version: int, steps: int, episodes: int) -> tuple:
-        """Count an actor's new work; return (version, [ref] or None, t_env, stop)."""
+    def sync(self, actor_id: int, have_version: int, steps: int, episodes: int) -> SyncReply:
+        """Count an actor's new work; return the newest weights if newer than `have_version`."""
         self.t_env += steps
         self.episodes += episodes
-        mine = self.per_actor.setdefault(actor_id, {"steps": 0, "episodes": 0})
-        mine["steps"] += steps
-        mine["episodes"] += episodes
+        self.per_actor[actor_id] = self.per_actor.get(actor_id, ActorWork()).plus(steps, episodes)
         newer = [self.weights] if self.version > have_version and self.weights is not None else None
-        return self.version, newer, self.t_env, self.stop
+        return SyncReply(self.version, newer, self.t_env, self.stop)
 
-    def progress(self) -> tuple[int, int, dict]:
-        return self.t_env, self.episodes, self.per_actor
+    def progress(self) -> ProgressReport:
+        return ProgressReport(self.t_env, self.episodes, dict(self.per_actor))
 
     def request_stop(self) -> None:
         self.stop = True
@@ -64,92 +70,76 @@ class Coordinator:
 # max_concurrency=2: `describe` answers while `run` is looping in the other thread.
 @ray.remote(max_restarts=-1, max_task_retries=0, max_concurrency=2)
 class RolloutActor:
-    """Steps `run.num_envs` envs with the latest published policy and inserts whole episodes.
+    """Steps `num_envs` envs with the latest published policy and inserts whole episodes.
 
     Ray restarts the process if it dies; the launcher then calls `run` again. Episode numbers
     come from `clock_seq`, so a restarted actor never reuses one (no insert of the new life is
     mistaken for a duplicate of the old one) and an episode is inserted whole or not at all.
+    The envs and the action sampling are seeded from `cfg.seed` (`messages.actor_seed`), and
+    the acting network is built from the learner's `ActingSpec`.
     """
 
-    def __init__(
-        self,
-        actor_id: int,
-        cfg_yaml: str,
-        buffer: tuple[str, int, str],
-        coordinator: str,
-        metrics: bool,
-    ):
-        self.actor_id = actor_id
-        self.cfg = cfg = build_train_config(yaml.safe_load(cfg_yaml))
-        run = cfg.run
-        seed = run.seed + 1000 * (actor_id + 1) + int(time.time()) % 1000
-        venv = make_vec_env(cfg.env.id, run.num_envs, seed=seed, **cfg.env.args)
-        info = venv.info
-        net = cfg.algo.agent.build(1, info.schema())
-        from learner.registry import get_algo
-
-        kind = "softmax" if get_algo(cfg.algo_name).family == "pg" else "q"
-        self.worker = RolloutWorker(
-            venv, net, kind, cfg.exploration, 1, actor_id, seed, next_seq=clock_seq
+    def __init__(self, cfg: ActorConfig, buffer: BufferAddress, coordinator: str):
+        self.actor_id = cfg.actor_id
+        venv = make_vec_env(cfg.env_id, cfg.num_envs, seed=cfg.seed, **cfg.env_args)
+        self.worker = RolloutWorker.from_spec(
+            venv, cfg.acting, cfg.exploration, cfg.actor_id, cfg.seed, next_seq=clock_seq
         )
-        host, port, token = buffer
-        self.client = BufferClient(host, port, token=token, schema=info.schema(), max_retries=1000)
+        self.client = BufferClient(
+            buffer.host,
+            buffer.port,
+            token=buffer.token,
+            schema=venv.info.schema(),
+            max_retries=1000,
+        )
         # Looked up by name: a handle as a constructor argument would live in the object
         # store, which Ray cannot guarantee to a restarted actor (ray-project/ray#53727).
         self.coordinator = ray.get_actor(coordinator)
-        self.metrics = ActorMetrics(actor_id) if metrics else None
+        self.metrics = ActorMetrics(cfg.actor_id) if cfg.metrics else None
         host = "127.0.0.1"
-        if cfg.cluster.bind_host not in ("127.0.0.1", "localhost"):
+        if cfg.bind_host not in ("127.0.0.1", "localhost"):
             host = ray.util.get_node_ip_address()  # this actor's node, reachable from the head
         self.endpoint = serve(self.metrics.registry, host=host) if self.metrics else None
-        # Cumulative over this process's life (`stats`): where the loop's time goes.
-        self.counters = {
-            "rounds": 0,
-            "env_steps": 0,
-            "act_s": 0.0,  # run_round: env steps and policy forward passes
-            "insert_s": 0.0,  # client.insert, incl. rate-limiter waits and the fsync
-            "sync_s": 0.0,  # coordinator.sync round trips and fetching new weights
-            "insert_refusals": 0,  # inserts the rate limiter refused within INSERT_WAIT_S
-        }
+        self.counters = ActorCounters()  # cumulative over this process's life (`stats`)
 
-    def describe(self) -> dict:
+    def describe(self) -> ActorDescription:
         """pid and metrics endpoint of this actor process."""
-        return {"actor_id": self.actor_id, "pid": os.getpid(), "metrics": self.endpoint}
+        endpoint = tuple(self.endpoint) if self.endpoint else None
+        return ActorDescription(self.actor_id, os.getpid(), endpoint)
 
-    def stats(self) -> dict:
-        """This process's loop counters (see __init__) with its pid and weights version."""
-        return {**self.counters, "pid": os.getpid(), "version": self.worker.version}
+    def stats(self) -> ActorStats:
+        """This process's loop counters with its pid and weights version."""
+        return self.counters.snapshot(os.getpid(), self.worker.version)
 
-    def run(self) -> dict:
+    def run(self) -> ActorWork:
         """Collect and insert until the coordinator says stop; returns this life's totals."""
         steps = episodes = 0
-        total_steps = total_episodes = 0
+        total = ActorWork()
         c = self.counters
         while True:
             started = time.perf_counter()
-            _version, newer, t_env, stop = ray.get(
+            reply: SyncReply = ray.get(
                 self.coordinator.sync.remote(self.actor_id, self.worker.version, steps, episodes)
             )
-            if stop:
-                return {"env_steps": total_steps, "episodes": total_episodes}
-            if newer is not None:
-                weights = ray.get(newer[0])
+            if reply.stop:
+                return total
+            if reply.weights is not None:
+                weights = ray.get(reply.weights[0])
                 self.worker.set_weights(weights)
                 if self.metrics:
                     self.metrics.set_weights_version(weights.version)
             acting = time.perf_counter()
-            result = self.worker.run_round(t_env=t_env)
+            result = self.worker.run_round(t_env=reply.t_env)
             inserting = time.perf_counter()
             self._insert(result.episodes)
             done = time.perf_counter()
             steps, episodes = result.env_steps, len(result.episodes)
-            total_steps += steps
-            total_episodes += episodes
-            c["rounds"] += 1
-            c["env_steps"] += steps
-            c["sync_s"] += acting - started
-            c["act_s"] += inserting - acting
-            c["insert_s"] += done - inserting
+            total = total.plus(steps, episodes)
+            c.rounds += 1
+            c.env_steps += steps
+            c.sync_s += acting - started
+            c.act_s += inserting - acting
+            c.insert_s += done - inserting
             if self.metrics:
                 self.metrics.record(episodes, steps)
 
@@ -163,9 +153,9 @@ class RolloutActor:
                 self.client.insert(episodes, timeout_s=INSERT_WAIT_S)
                 return
             except RateLimitedError:
-                self.counters["insert_refusals"] += 1
-                stop = ray.get(
+                self.counters.insert_refusals += 1
+                reply: SyncReply = ray.get(
                     self.coordinator.sync.remote(self.actor_id, self.worker.version, 0, 0)
-                )[3]
-                if stop:
+                )
+                if reply.stop:
                     return

@@ -4,7 +4,8 @@ importlib.resources), user files and `--set` overrides."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from importlib.resources.abc import Traversable
 from typing import Any, Literal
@@ -17,6 +18,8 @@ from actors.policy import ExplorationConfig
 from buffer_service.config import RateLimiterConfig, TableConfig
 from cluster.config import ConfigError, build, deep_merge, parse_overrides, read_yaml, to_dict
 from learner.registry import get_algo
+
+log = logging.getLogger(__name__)
 
 CONFIG_PACKAGE = "cluster"  # the shipped layers are package data: cluster/configs/
 
@@ -104,6 +107,9 @@ class RunConfig:
             rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
+        max_policy_lag: drop sampled episodes more than this many versions behind the
+            learner before an update, in both modes (0 = keep all; off-policy learners
+            replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
     """
 
     t_max: int = 2_000_000
@@ -115,6 +121,7 @@ class RunConfig:
     device: str = "cpu"
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
+    max_policy_lag: int = 0
 
     def validate(self) -> None:
         try:
@@ -133,6 +140,8 @@ class RunConfig:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.save_interval < 0:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
+        if self.max_policy_lag < 0:
+            raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
 
 
 @dataclass(frozen=True)
@@ -143,8 +152,6 @@ class ClusterConfig:
         actors: rollout actors (Ray actors), each stepping run.num_envs envs.
         actor_cpus: CPUs Ray reserves per actor.
         publish_interval: learner updates between weight publications (one ray.put each).
-        max_policy_lag: drop sampled episodes more than this many versions behind the
-            learner (0 = keep all; off-policy learners replay old episodes by design).
         rate_slack: how many rounds of every actor may be in flight before inserts wait for
             the learner (the sample-to-insert limiter's error buffer, in rounds).
         fsync: the buffer service fsyncs its log before acknowledging an insert.
@@ -159,7 +166,6 @@ class ClusterConfig:
     actors: int = 2
     actor_cpus: float = 1.0
     publish_interval: int = 1
-    max_policy_lag: int = 0
     rate_slack: int = 2
     fsync: bool = True
     sample_timeout_s: float = 30.0
@@ -174,8 +180,6 @@ class ClusterConfig:
         for name in ("publish_interval", "rate_slack"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.max_policy_lag < 0:
-            raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
         if self.sample_timeout_s <= 0:
             raise ValueError(f"sample_timeout_s must be > 0, got {self.sample_timeout_s}")
         if not self.bind_host:
@@ -295,8 +299,33 @@ def load_train_config(
     return build_train_config(data)
 
 
+def moved_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """`data` with keys that moved read into their new place, so that the config.yaml of an
+    older run still resumes: cluster.max_policy_lag (cluster mode only, before the one loop)
+    is run.max_policy_lag (both modes).
+
+    Raises:
+        ConfigError: both names given, with different values.
+    """
+    cluster = data.get("cluster")
+    if not isinstance(cluster, dict) or "max_policy_lag" not in cluster:
+        return data
+    cluster = dict(cluster)
+    lag = cluster.pop("max_policy_lag")
+    run = dict(data.get("run") or {})
+    if run.get("max_policy_lag", lag) != lag:
+        raise ConfigError(
+            f"cluster.max_policy_lag={lag} and run.max_policy_lag={run['max_policy_lag']}: "
+            "the key is run.max_policy_lag now; give it once"
+        )
+    run["max_policy_lag"] = lag
+    log.warning("cluster.max_policy_lag is run.max_policy_lag now (it applies in both modes)")
+    return {**data, "cluster": cluster, "run": run}
+
+
 def build_train_config(data: dict[str, Any]) -> TrainConfig:
     """A TrainConfig from complete data (`TrainConfig.to_yaml_dict()` form), validated."""
+    data = moved_keys(data)
     try:
         spec = get_algo(data.get("algo_name", ""))
     except ValueError as e:
@@ -370,12 +399,21 @@ def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
     if value:
         return DataPlan((replay,), "replay", bs, rp.updates_per_episode)
     capacity = cfg.cycling.capacity if spec.extended else n_new
+    cycling_limiter = limiter(capacity / n_new, capacity, capacity)
+    if spec.extended and bs > capacity:
+        # No step until the replay table also holds a batch: the cycling table's inserts of
+        # that joint warm-up must pass its limiter, or actors and learner would wait on each
+        # other forever (and local mode would stop with RateLimitDeadlockError).
+        warmup = cycling_limiter.samples_per_insert * (bs - capacity)
+        cycling_limiter = replace(
+            cycling_limiter, error_buffer=cycling_limiter.error_buffer + warmup
+        )
     cycling = TableConfig(
         name="cycling",
         kind="cycling",
         capacity=capacity,
         max_times_sampled=max(1, capacity // n_new),
-        rate_limiter=limiter(capacity / n_new, capacity, capacity),
+        rate_limiter=cycling_limiter,
     )
     if not spec.extended:
         return DataPlan((cycling,), "cycling", capacity, 1 / n_new)

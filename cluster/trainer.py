@@ -1,7 +1,9 @@
-"""The single-process training loop (`credit train --mode local`), seed-batched when asked.
+"""What every mode's training shares (`TrainerCore`: learner, evaluation, checkpoints) and the
+`--mode local` launcher `LocalTrainer`, seed-batched when asked.
 
-One loop serves a normal run (E = 1) and a seed-batched run (E members trained side by side in
-the same tensors, each with its own envs, replay and random streams; see learner.networks).
+The loop itself is `cluster.loop.TrainLoop` (one loop for both modes; its docstring says how
+the modes behave). A seed-batched run trains E members side by side in the same tensors, each
+with its own envs, replay and random streams (see learner.networks).
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ import yaml
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
-from buffer_service.local import LocalBuffer
 from cluster.config import ConfigError
 from cluster.run_config import TrainConfig, data_plan
 from learner.registry import Learner, get_algo
@@ -95,10 +96,12 @@ class Progress:
 
 
 class TrainerCore:
-    """What every training loop shares: the learner, greedy evaluation, counters, checkpoints.
+    """What the training loop shares between modes: the learner, greedy evaluation, counters,
+    checkpoints.
 
-    Loops (`LocalTrainer` here, `cluster.cluster_trainer.ClusterTrainer`) own how episodes are
-    produced and batches reach `learner.step`; they report progress through `count`.
+    The loop (`cluster.loop.TrainLoop`) and its acting and data sides own how episodes are
+    produced and how batches reach `learner.step` (through `update`); they keep `t_env` and
+    `episodes` current.
     """
 
     def __init__(
@@ -214,9 +217,15 @@ class TrainerCore:
         self,
         on_eval: Callable[[list[EvalRecord]], None] | None,
         bar: Progress | None,
-        extra_state: Callable[[], dict] | None = None,
+        save: Callable[[Path], None] | None = None,
     ) -> None:
-        """Evaluate and checkpoint when their intervals have passed."""
+        """Evaluate and checkpoint when their intervals have passed.
+
+        Args:
+            on_eval: called with the evaluation's records.
+            bar: the progress bar to refresh.
+            save: writes a whole checkpoint to the given folder (default: `self.save`).
+        """
         run = self.cfg.run
         if self.t_env - self.last_test_t >= run.test_interval:
             records = self.evaluate()
@@ -231,7 +240,7 @@ class TrainerCore:
             and self.t_env - self.last_save_t >= run.save_interval
         ):
             self.last_save_t = self.t_env
-            self.save(self.checkpoint_dir, extra_state() if extra_state else {})
+            (save or self.save)(self.checkpoint_dir)
 
     def progress_text(self, records: list[EvalRecord]) -> str:
         """The greedy evaluation's figures (means over members) for a progress line."""
@@ -241,10 +250,18 @@ class TrainerCore:
         return f"{text} updates {self.learner.updates}"
 
     # -- checkpoints -------------------------------------------------------------------------
-    def save(self, path: Path, extra: dict | None = None) -> None:
+    def save(
+        self, path: Path, extra: dict | None = None, files: Callable[[Path], None] | None = None
+    ) -> None:
         """Write the learner (networks, targets, optimisers, counters), loop counters, RNG
         states and the loop's `extra` state to `path` atomically: a crash mid-write leaves the
-        previous checkpoint (or its `.old` copy) intact."""
+        previous checkpoint (or its `.old` copy) intact.
+
+        Args:
+            path: the checkpoint folder.
+            extra: the loop's own state (RNG states, counters).
+            files: writes more files into the folder being built (e.g. buffer tables).
+        """
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
@@ -262,6 +279,8 @@ class TrainerCore:
         }
         torch.save(state, tmp / "trainer.pt")
         (tmp / "config.yaml").write_text(yaml.safe_dump(self.cfg.to_yaml_dict(), sort_keys=False))
+        if files:
+            files(tmp)
         old = path.with_name(path.name + ".old")
         shutil.rmtree(old, ignore_errors=True)
         if path.exists():
@@ -269,14 +288,19 @@ class TrainerCore:
         os.replace(tmp, path)
         shutil.rmtree(old, ignore_errors=True)
 
+    @staticmethod
+    def checkpoint_folder(path: Path) -> Path:
+        """The folder holding the checkpoint `save` wrote to `path`: `path`, or its `.old`
+        copy after a crash between the two renames of `save`."""
+        path = Path(path)
+        old = path.with_name(path.name + ".old")
+        if not (path / "trainer.pt").exists() and (old / "trainer.pt").exists():
+            return old
+        return path
+
     def restore(self, path: Path) -> dict:
         """Load a checkpoint written by `save` (same config); returns the loop's extra state."""
-        path = Path(path)
-        if (
-            not (path / "trainer.pt").exists()
-            and (path.with_name(path.name + ".old") / "trainer.pt").exists()
-        ):
-            path = path.with_name(path.name + ".old")  # a crash between the two renames of save()
+        path = self.checkpoint_folder(path)
         device = self.cfg.run.device  # a checkpoint saved on another device loads here
         learner_state = torch.load(path / "learner.pt", weights_only=False, map_location=device)
         self.learner.load_state_dict(learner_state)
@@ -291,7 +315,8 @@ class TrainerCore:
 
 
 class LocalTrainer:
-    """Rollouts, buffer tables and updates in one process for E seed-batched members.
+    """`--mode local`: the one loop (`cluster.loop.TrainLoop`) with an in-process worker and
+    in-process buffer tables, for E seed-batched members.
 
     Calling loop::
 
@@ -301,15 +326,22 @@ class LocalTrainer:
     """
 
     def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
+        from cluster.loop import TrainLoop, check_modes
+        from cluster.loop_local import LocalActing, LocalData
+        from cluster.loop_stats import LoopStats
+
         self.core = core = TrainerCore(cfg, n_ensemble, checkpoint_dir)
-        run = cfg.run
+        check_modes(core, ensemble_ok=True)
         self.E = n_ensemble
-        venv = make_vec_env(cfg.env.id, n_ensemble * run.num_envs, seed=run.seed, **cfg.env.args)
-        self.worker = core.local_worker(venv, run.seed)
-        self.buffers = [
-            LocalBuffer(core.plan.tables, seed=run.seed * 1000 + k) for k in range(n_ensemble)
-        ]
-        self.update_credit = 0.0  # learner steps owed to the episodes inserted so far
+        self.stats = LoopStats()
+        self.data = LocalData(core, self.stats)
+        self.acting = LocalActing(core, self.data)
+        self.loop = TrainLoop(core, self.acting, self.data, self.stats)
+
+    @property
+    def worker(self) -> RolloutWorker:
+        """The in-process rollout worker."""
+        return self.acting.worker
 
     def train(
         self,
@@ -318,72 +350,14 @@ class LocalTrainer:
         stop: Callable[[], bool] | None = None,
     ) -> None:
         """Train until t_env >= t_max (or `stop()` is true), evaluating every test_interval
-        env steps."""
-        core, run = self.core, self.core.cfg.run
-        bar = Progress(run.t_max) if progress else None
-        while core.t_env < run.t_max and not (stop and stop()):
-            core.sync_worker(self.worker)
-            result = self.worker.run_round(t_env=core.t_env)
-            per = run.num_envs
-            for k, buf in enumerate(self.buffers):
-                buf.insert(result.episodes[k * per : (k + 1) * per])
-            core.t_env += result.env_steps // self.E
-            core.episodes += per
-            # plan.updates_per_episode steps per new episode once the tables can serve a
-            # batch; steps owed while they could not are dropped, not caught up (PyMARL's
-            # warm-up), and a fraction carries over to the next round.
-            self.update_credit += per * core.plan.updates_per_episode
-            while self.update_credit >= 1.0:
-                batch, extra = self._sample()
-                if batch is None:
-                    self.update_credit = 0.0
-                    break
-                self.update_credit -= 1.0
-                core.update(batch, extra)
-            core.periodic(on_eval, bar, self.loop_state)
-        if bar:
-            bar.close()
-
-    def _sample(self) -> tuple[EpisodeBatch | None, EpisodeBatch | None]:
-        """The next learner batch (and extra batch) of every member, or (None, None)."""
-        plan = self.core.plan
-        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
-            return None, None
-        if plan.extra_table and not all(
-            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
-        ):
-            return None, None
-        batch = self._stack([b.sample(plan.table, plan.batch_size) for b in self.buffers])
-        extra = None
-        if plan.extra_table:
-            extra = self._stack(
-                [b.sample(plan.extra_table, plan.extra_batch_size) for b in self.buffers]
-            )
-        return batch, extra
-
-    def _stack(self, batches: list[EpisodeBatch]) -> EpisodeBatch:
-        return batches[0] if self.E == 1 else EpisodeBatch.stack(batches)
-
-    def loop_state(self) -> dict:
-        """RNG states and counters of this loop, for checkpoints. The buffer contents are not
-        saved; a resumed local run refills its buffer."""
-        return {
-            "worker_rng": self.worker.gen.get_state(),
-            "buffer_rng": [b.rng_state() for b in self.buffers],
-            "episode_seq": self.worker.episode_seq,
-            "update_credit": self.update_credit,
-        }
+        env steps (`TrainLoop.train`)."""
+        self.loop.train(on_eval, progress, stop)
 
     def save(self, path: Path) -> None:
-        self.core.save(path, self.loop_state())
+        self.loop.save(path)
 
     def restore(self, path: Path) -> None:
-        state = self.core.restore(path)
-        self.worker.gen.set_state(state["worker_rng"])
-        for buf, rng in zip(self.buffers, state["buffer_rng"], strict=True):
-            buf.set_rng_state(rng)
-        self.worker.episode_seq = state["episode_seq"]
-        self.update_credit = state.get("update_credit", 0.0)
+        self.loop.restore(path)
 
 
 def write_json(path: Path, obj: dict) -> None:

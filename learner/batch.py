@@ -18,6 +18,36 @@ from learner.lazy import LazyTensor
 
 
 @dataclass(frozen=True)
+class AgentInputLayout:
+    """The agent network's per-agent input, the one definition of its parts and width:
+    own observation, last action one-hot, agent id one-hot, concatenated in that order.
+
+    Every builder of agent inputs (the learner's `agent_inputs`, the first-layer projection
+    `networks.input_projection`, the acting `RolloutWorker`) and the network's input width
+    (`networks.ActingSpec`) read it from here.
+
+    Attributes:
+        obs_dim: O, one agent's observation.
+        n_actions: A, the last action one-hot.
+        n_agents: N, the agent id one-hot.
+    """
+
+    obs_dim: int
+    n_actions: int
+    n_agents: int
+
+    @property
+    def parts(self) -> tuple[int, int, int]:
+        """(O, A, N): widths of the observation, last-action and id parts, in input order."""
+        return self.obs_dim, self.n_actions, self.n_agents
+
+    @property
+    def width(self) -> int:
+        """O + A + N."""
+        return sum(self.parts)
+
+
+@dataclass(frozen=True)
 class TensorBatch:
     """An EpisodeBatch on the learner's device, always with an ensemble axis.
 
@@ -113,7 +143,7 @@ class AgentInputs(LazyTensor):
 
     def __new__(cls, obs: torch.Tensor, actions: torch.Tensor, a: int):
         e, b, tp, n, o = obs.shape
-        return super().__new__(cls, (e, b, tp, n, o + a + n), obs)
+        return super().__new__(cls, (e, b, tp, n, AgentInputLayout(o, a, n).width), obs)
 
     def __init__(self, obs: torch.Tensor, actions: torch.Tensor, a: int):
         super().__init__(tuple(self.shape), obs)

@@ -99,7 +99,8 @@ class COMALearner(AgentCriticLearner):
     ):
         self.cfg, self.info, self.n_ensemble, self.device = cfg, info, n_ensemble, device
         n, a = info.n_agents, info.n_actions
-        self.agent = cfg.agent.build(n_ensemble, info).to(device)
+        self.acting = cfg.agent.acting_spec(info, self.policy_kind)
+        self.agent = self.acting.build(n_ensemble).to(device)
         in_dim = info.state_dim + info.obs_dim + 2 * n * a + n
         self.critic = MLP(n_ensemble, in_dim, tuple(cfg.critic_hidden), a).to(device)
         self.target_critic = TargetNet(self.critic, cfg.target_update_interval)

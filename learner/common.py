@@ -10,7 +10,8 @@ import torch
 from torch import nn
 
 from buffer_service.episode import EpisodeSchema
-from learner.networks import AgentNet, VersionedWeights, clip_grad_norm_per_member
+from learner.batch import AgentInputLayout
+from learner.networks import ActingSpec, AgentNet, VersionedWeights, clip_grad_norm_per_member
 
 OPTIMISERS = ("adam", "rmsprop")
 
@@ -38,10 +39,21 @@ class AgentConfig:
         if self.hidden < 1 or self.fc < 1:
             raise ValueError("agent.hidden and agent.fc must be >= 1")
 
+    def acting_spec(self, schema: EpisodeSchema, policy_kind: str) -> ActingSpec:
+        """The acting network's description for `schema` (input: `AgentInputLayout`).
+
+        Args:
+            schema: the env's episode sizes.
+            policy_kind: "q" or "softmax" (the learner's family).
+        Returns:
+            An ActingSpec that rollout workers build their network from.
+        """
+        layout = AgentInputLayout(schema.obs_dim, schema.n_actions, schema.n_agents)
+        return ActingSpec(layout, self.hidden, self.fc, self.recurrent, policy_kind)
+
     def build(self, n_ensemble: int, schema: EpisodeSchema) -> AgentNet:
-        """The agent network for `schema`: input = own obs + last action + agent id."""
-        in_dim = schema.obs_dim + schema.n_actions + schema.n_agents
-        return AgentNet(n_ensemble, in_dim, schema.n_actions, self.hidden, self.fc, self.recurrent)
+        """The agent network for `schema` (`acting_spec(...).build`)."""
+        return self.acting_spec(schema, "q").build(n_ensemble)
 
 
 def validate_optimiser(name: str) -> None:

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from learner.batch import AgentBlocks, AgentInputs
+from learner.batch import AgentBlocks, AgentInputLayout, AgentInputs
 
 
 class EnsembleLinear(nn.Module):
@@ -125,7 +125,7 @@ class AgentNet(nn.Module):
         recurrent: bool = True,
     ):
         super().__init__()
-        self.hidden, self.recurrent = hidden, recurrent
+        self.input_dim, self.hidden, self.recurrent = input_dim, hidden, recurrent
         if recurrent:
             self.gru = EnsembleGRUCell(n_ensemble, input_dim, hidden)
         else:
@@ -335,7 +335,7 @@ def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) ->
     in the layer."""
     e, _, _, n, o = x.obs.shape
     a, h = x.n_actions, layer.out_features
-    w_obs, w_act, w_id = layer.weight.split([o, a, n], dim=1)
+    w_obs, w_act, w_id = layer.weight.split(list(AgentInputLayout(o, a, n).parts), dim=1)
     w_last = torch.cat([w_act, w_act.new_zeros(e, 1, h)], dim=1)  # row A: no last action
     table = w_last.unsqueeze(1) + (w_id + layer.bias).unsqueeze(2)  # [E, N, A+1, H]
     out = F.embedding(x.onehot_index(time_major), table.reshape(-1, h))
@@ -344,6 +344,31 @@ def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) ->
     if parts:
         out.view(-1, h).index_add_(0, flat, torch.cat(parts))
     return out
+
+
+@dataclass(frozen=True)
+class ActingSpec:
+    """What a rollout worker needs to build and drive the acting network, as the learner
+    describes it (`Learner.acting`); plain values, so it crosses process boundaries.
+
+    Attributes:
+        layout: the per-agent input (own obs, last action, agent id); its width is the
+            network's input width.
+        hidden, fc, recurrent: the `AgentNet` architecture (see `learner.common.AgentConfig`).
+        policy_kind: "q" (epsilon-greedy on Q-values) or "softmax" (sample the policy).
+    """
+
+    layout: AgentInputLayout
+    hidden: int
+    fc: int
+    recurrent: bool
+    policy_kind: str
+
+    def build(self, n_ensemble: int = 1) -> AgentNet:
+        """A fresh AgentNet of `n_ensemble` members (draws its initial weights from torch's
+        global RNG, so a learner building it keeps its seeded initialisation)."""
+        lay = self.layout
+        return AgentNet(n_ensemble, lay.width, lay.n_actions, self.hidden, self.fc, self.recurrent)
 
 
 @dataclass(frozen=True)

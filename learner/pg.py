@@ -222,7 +222,8 @@ class CACLearner(AgentCriticLearner):
         self.cfg, self.info, self.extended, self.masked = cfg, info, extended, masked
         self.n_ensemble, self.device = n_ensemble, device
         n = info.n_agents
-        self.agent = cfg.agent.build(n_ensemble, info).to(device)
+        self.acting = cfg.agent.acting_spec(info, self.policy_kind)
+        self.agent = self.acting.build(n_ensemble).to(device)
         in_dim = {"obs": n * info.obs_dim, "state": info.state_dim}.get(
             cfg.critic_input, n * info.obs_dim + info.state_dim
         )

@@ -155,7 +155,8 @@ class RDNLearner(AgentCriticLearner):
                 f"(> joint_max_limit={cfg.joint_max_limit}); use next_action=greedy"
             )
         self.block = cfg.obs_window * info.obs_dim + a + n
-        self.agent = cfg.agent.build(n_ensemble, info).to(device)
+        self.acting = cfg.agent.acting_spec(info, self.policy_kind)
+        self.agent = self.acting.build(n_ensemble).to(device)
         first = None
         if cfg.critic_agent_encoder:
             first = AgentBlockLinear(n_ensemble, n, self.block, cfg.critic_agent_encoder)

@@ -11,7 +11,7 @@ from typing import Any, Protocol
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.coma import COMAConfig, COMALearner
-from learner.networks import AgentNet, VersionedWeights
+from learner.networks import ActingSpec, AgentNet, VersionedWeights
 from learner.pg import CACConfig, CACLearner
 from learner.rdn import RDNConfig, RDNLearner
 from learner.value import ValueConfig, ValueLearner
@@ -27,6 +27,7 @@ class Learner(Protocol):
             metrics = learner.step(batch)       # dict of scalar losses and diagnostics
             # (extended policy-gradient learners also take `extra`, an off-policy batch)
             learner.sync_targets(episodes)      # total inserted episodes: target refresh
+        net = learner.acting.build()            # an actor's own acting network
         actors.set_weights(learner.get_weights())
         torch.save(learner.state_dict(), path)  # networks, targets, optimisers, counters
     """
@@ -34,6 +35,7 @@ class Learner(Protocol):
     policy_kind: str  # "q" (ε-greedy on Q-values) or "softmax" (sample the policy)
     updates: int  # also the version of the weights get_weights() returns
     agent: AgentNet  # the acting network; in one process actors may act with it directly
+    acting: ActingSpec  # how another process builds that network (rollout actors)
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]: ...
     def sync_targets(self, episodes: int) -> bool: ...

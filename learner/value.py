@@ -100,7 +100,8 @@ class ValueLearner:
     ):
         self.cfg, self.info, self.mixing = cfg, info, mixing
         self.n_ensemble, self.device = n_ensemble, device
-        self.agent = cfg.agent.build(n_ensemble, info).to(device)
+        self.acting = cfg.agent.acting_spec(info, self.policy_kind)
+        self.agent = self.acting.build(n_ensemble).to(device)
         modules = [self.agent]
         self.mixer: QMixer | None = None
         if mixing in ("qmix", "qmix_ns"):

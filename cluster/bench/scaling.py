@@ -98,8 +98,9 @@ class Probe:
 
         progress = self.coordinator.progress.remote()
         actor_stats = [a.stats.remote() for a in self.actors]
-        t_env, episodes, _ = ray.get(progress, timeout=60)
-        actors = ray.get(actor_stats, timeout=60)
+        report = ray.get(progress, timeout=60)
+        t_env, episodes = report.t_env, report.episodes
+        actors = [a.as_dict() for a in ray.get(actor_stats, timeout=60)]
         buffer = self.client.stats()
         learner = self.learner_stats.snapshot()
         table = st.process_table()
@@ -203,7 +204,7 @@ def run_trainer(cfg, work: Path, args: argparse.Namespace, train: bool) -> dict[
             started = lambda: trainer.stats.updates > 0  # noqa: E731
         else:
             progress = trainer.coordinator.progress
-            started = lambda: ray.get(progress.remote())[0] > 0  # noqa: E731
+            started = lambda: ray.get(progress.remote()).t_env > 0  # noqa: E731
         result = measure(probe, args, started, lambda: errors[0] if errors else None)
     finally:
         trainer.stop_requested = True

@@ -24,6 +24,7 @@ from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import EpisodeSchema
 from cluster.bench.common import synthetic_episode
 from cluster.loop_stats import LoopStats
+from cluster.messages import ActorCounters, ActorStats
 
 
 @ray.remote(max_restarts=0, max_concurrency=2)
@@ -56,18 +57,11 @@ class SyntheticActor:
         self.client = BufferClient(host, port, token=token, schema=sch, max_retries=1000)
         self.coordinator = coordinator
         self.seq = 0
-        self.counters = {
-            "rounds": 0,
-            "env_steps": 0,
-            "act_s": 0.0,  # building the round's episode records (no env)
-            "insert_s": 0.0,
-            "sync_s": 0.0,
-            "insert_refusals": 0,
-        }
+        self.counters = ActorCounters()  # act_s: building the round's records (no env)
 
-    def stats(self) -> dict:
+    def stats(self) -> ActorStats:
         """Loop counters in `RolloutActor.stats` form."""
-        return {**self.counters, "pid": os.getpid(), "version": 0}
+        return self.counters.snapshot(os.getpid(), 0)
 
     def run(self) -> None:
         """Sync, insert one round, repeat until the coordinator says stop."""
@@ -75,7 +69,7 @@ class SyntheticActor:
         steps = episodes = 0
         while True:
             started = time.perf_counter()
-            stop = ray.get(self.coordinator.sync.remote(self.actor_id, 0, steps, episodes))[3]
+            stop = ray.get(self.coordinator.sync.remote(self.actor_id, 0, steps, episodes)).stop
             if stop:
                 return
             acting = time.perf_counter()
@@ -87,16 +81,16 @@ class SyntheticActor:
             try:
                 self.client.insert(eps)
             except RateLimitedError:
-                c["insert_refusals"] += 1
+                c.insert_refusals += 1
                 steps = episodes = 0
                 continue
             done = time.perf_counter()
             steps, episodes = sum(len(e.reward) for e in eps), len(eps)
-            c["rounds"] += 1
-            c["env_steps"] += steps
-            c["sync_s"] += acting - started
-            c["act_s"] += inserting - acting
-            c["insert_s"] += done - inserting
+            c.rounds += 1
+            c.env_steps += steps
+            c.sync_s += acting - started
+            c.act_s += inserting - acting
+            c.insert_s += done - inserting
 
 
 class Sampler:

@@ -56,6 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--snapshot-dir", help="log + snapshot directory (omit: in memory, no durability)"
     )
     s.add_argument("--no-fsync", action="store_true", help="ack inserts after write(), not fsync")
+    s.add_argument("--seed", type=int, help="seed of the sampling RNG (default: random)")
     s.add_argument(
         "--snapshot-every",
         type=int,
@@ -130,6 +131,11 @@ def parse_table(spec: str) -> TableConfig:
     table: dict = {
         k: (int(v) if k in ("capacity", "max_times_sampled") else v) for k, v in d.items()
     }
+    if "replacement" in table:
+        flag = str(table["replacement"]).lower()
+        if flag not in ("true", "false"):
+            raise ValueError(f"--table replacement={table['replacement']}: use true or false")
+        table["replacement"] = flag == "true"
     table["rate_limiter"] = RateLimiterConfig(**limiter)
     return TableConfig.from_dict(table)
 
@@ -155,6 +161,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         max_sample_episodes=args.max_sample,
         repair=args.repair,
         metrics_port=args.metrics_port,
+        seed=args.seed,
     )
     cfg.validate()
     return cfg

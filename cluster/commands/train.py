@@ -127,12 +127,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         "wall_s": round(core.wall_s, 3),
         "final_test_return_mean": last.test_return_mean,
         "final_test_won_mean": last.test_won_mean,
+        "dropped_stale_episodes": trainer.stats.dropped_stale,  # run.max_policy_lag
     }
     if args.mode == "cluster":
         summary["actors"] = cfg.cluster.actors
         summary["actor_restarts"] = trainer.restarts
         summary["buffer_restarts"] = trainer.buffer.restarts
-        summary["dropped_stale_episodes"] = trainer.dropped_stale
     write_json(out / "summary.json", summary)
     print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
     return 0

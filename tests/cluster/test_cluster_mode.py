@@ -16,6 +16,7 @@ from buffer_service.config import BufferConfig, TableConfig
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
 from cluster import ray_cluster
+from tests.cluster.episodes import assert_same_first_episodes
 from tests.cluster.polling import wait_for
 
 ray = pytest.importorskip("ray", reason="cluster mode needs ray")
@@ -64,38 +65,35 @@ def _assert_whole_and_unique(state, in_flight: int = 0):
 
 
 def test_cluster_outputs_match_local_mode(tmp_path, env):
-    out = tmp_path / "run"
-    done = subprocess.run(
-        _cli([*BASE, "--t-max", "100", "--out", str(out)]),
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    summary = json.loads((out / "summary.json").read_text())
-    local_keys = {
-        "algo",
-        "env",
-        "seed",
-        "t_env",
-        "episodes",
-        "wall_s",
-        "final_test_return_mean",
-        "final_test_won_mean",
-    }
-    assert local_keys <= set(summary)
+    """A one-actor cluster run and a local run with the same seed: the same outputs (every
+    summary key of local mode, metrics lines, checkpoint), and the same episodes for the
+    first rounds (all 16 acted with the initial weights, before the first update), compared
+    field by field in the two buffer folders (the service's, the local checkpoint's)."""
+    common = ["--algo", "vdn", "--env", "matrix/two_step", "--seed", "3", "--t-max", "100"]
+    common += [*BIG_REPLAY, "--set", "replay.batch_size=16"]
+    runs = {}
+    for mode in ("local", "cluster"):
+        out = tmp_path / mode
+        args = [*common, "--mode", mode, "--out", str(out)]
+        args += ["--actors", "1"] if mode == "cluster" else []
+        done = subprocess.run(_cli(args), env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        runs[mode] = json.loads((out / "summary.json").read_text())
+    local, summary = runs["local"], runs["cluster"]
+    assert set(local) <= set(summary)
     assert summary["mode"] == "cluster" and summary["t_env"] >= 100 and summary["updates"] > 0
+    out = tmp_path / "cluster"
     lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert lines and all(
         {"t_env", "episode", "test_return_mean", "wall_s"} <= set(x) for x in lines
     )
     targets = json.loads((out / "targets.json").read_text())
-    assert len(targets[0]["targets"]) == 4  # learner, two actors, buffer service
+    assert len(targets[0]["targets"]) == 3  # learner, the actor, buffer service
     assert all(t.startswith("127.0.0.1:") for t in targets[0]["targets"])
-    state = _stored_episodes(out)
-    assert {actor for actor, _ in state.episodes} == {0, 1}  # both actors contributed
-    _assert_whole_and_unique(state)
+    _assert_whole_and_unique(_stored_episodes(out))
+    assert_same_first_episodes(
+        tmp_path / "local" / "checkpoint" / "buffer" / "member-0", out / "buffer" / "data", 16
+    )
 
 
 # slow (about 45 s): make test keeps the value family's cluster runs; this is EM-CAC's two tables.
