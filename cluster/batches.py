@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from buffer_service.episode import EpisodeBatch
-from cluster.run_config import DataPlan
+from cluster.config.plan import DataPlan
 
 Sampler = Callable[[str, int], EpisodeBatch | None]
 

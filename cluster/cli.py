@@ -8,7 +8,6 @@ import logging
 import sys
 
 from actors.envs.base import EnvError
-from cluster.cli_errors import UsageError
 from cluster.commands import bench as bench_cmd
 from cluster.commands import buffer as buffer_cmd
 from cluster.commands import cluster as cluster_cmd
@@ -19,8 +18,9 @@ from cluster.commands import inspect as inspect_cmd
 from cluster.commands import metrics as metrics_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
-from cluster.config import ConfigError
-from cluster.ray_cluster import ClusterError
+from cluster.config.schema import ConfigError
+from cluster.errors import UsageError
+from cluster.launch.ray_cluster import ClusterError
 from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")

@@ -2,9 +2,9 @@
 
 `TrainLoop` drives a `TrainerCore` (learner, evaluation, checkpoints) against two small
 interfaces: the acting side (`ActingSide`: an in-process `RolloutWorker`,
-`cluster.loop_local.LocalActing`, or Ray rollout actors, `cluster.loop_cluster.RayActing`) and
-the data side (`DataSide`: in-process buffer tables, `cluster.loop_local.LocalData`, or the
-buffer service over TCP, `cluster.loop_cluster.ServiceData`). `LocalTrainer` and
+`cluster.launch.local.LocalActing`, or Ray rollout actors, `cluster.launch.ray_sides.RayActing`) and
+the data side (`DataSide`: in-process buffer tables, `cluster.launch.local.LocalData`, or the
+buffer service over TCP, `cluster.launch.ray_sides.ServiceData`). `LocalTrainer` and
 `ClusterTrainer` only choose the pair.
 
 Behaviour of the two modes (the one place it is written down)
@@ -50,9 +50,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from buffer_service.episode import Episode, EpisodeBatch
-from cluster.config import ConfigError
-from cluster.loop_stats import LoopStats
-from cluster.trainer import EvalRecord, Progress, TrainerCore
+from cluster.config.schema import ConfigError
+from cluster.core import EvalRecord, Progress, TrainerCore
+from cluster.metrics.loop_stats import LoopStats
 
 log = logging.getLogger(__name__)
 

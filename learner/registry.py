@@ -53,7 +53,7 @@ class AlgoSpec:
         config_cls: its frozen config dataclass (the `algo:` section of a run config).
         build: `(config, schema, n_ensemble, device) -> Learner`.
         description: one line for help texts.
-        family: "value" or "pg"; decides the buffer tables (cluster.run_config.data_plan).
+        family: "value" or "pg"; decides the buffer tables (cluster.config.train.data_plan).
         extended: for "pg", whether the learner also takes an off-policy replay batch.
     """
 

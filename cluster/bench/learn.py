@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from cluster.bench.common import emit
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.train import load_train_config
+from cluster.errors import UsageError
+from cluster.launch.local import LocalTrainer
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -13,8 +13,8 @@ import torch
 
 from cluster.bench.common import emit
 from cluster.commands import add_command
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.train import load_train_config
+from cluster.launch.local import LocalTrainer
 
 
 def register(sub: argparse._SubParsersAction) -> None:

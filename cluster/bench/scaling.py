@@ -161,7 +161,7 @@ def measure(probe: Probe, args: argparse.Namespace, started, failed) -> dict[str
 
 
 def _config(args: argparse.Namespace, n: int, actor_cpus: float):
-    from cluster.run_config import load_train_config
+    from cluster.config.train import load_train_config
 
     sets = [
         "run.t_max=1000000000000",
@@ -170,7 +170,7 @@ def _config(args: argparse.Namespace, n: int, actor_cpus: float):
         "run.save_interval=0",
         f"cluster.actors={n}",
         f"cluster.actor_cpus={actor_cpus}",
-        "cluster.metrics=false",  # no exporters, no file-SD file shared with other runs
+        "cluster.metrics.exporters=false",  # no exporters, no file-SD file shared with other runs
         f"cluster.fsync={'false' if args.no_fsync else 'true'}",
         *args.set,
     ]
@@ -181,7 +181,7 @@ def run_trainer(cfg, work: Path, args: argparse.Namespace, train: bool) -> dict[
     """The `train` configuration (train=True) or the `no_learner` bound (train=False)."""
     import ray
 
-    from cluster.cluster_trainer import ClusterTrainer
+    from cluster.launch.cluster import ClusterTrainer
 
     trainer = ClusterTrainer(cfg, work)
     if not train:
@@ -229,9 +229,9 @@ def run_transport(cfg, work: Path, args: argparse.Namespace, length: int) -> dic
     import ray
 
     from cluster.bench.scaling_actors import Sampler, SyntheticActor
-    from cluster.buffer_proc import BufferProcess
-    from cluster.ray_actors import Coordinator
-    from cluster.run_config import data_plan
+    from cluster.config.plan import data_plan
+    from cluster.launch.buffer_proc import BufferProcess
+    from cluster.launch.ray_actors import Coordinator
 
     ccfg = cfg.cluster
     plan = data_plan(cfg, ccfg.actors)
@@ -337,7 +337,7 @@ def cmd_scaling(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     work = out / ".work"
-    from cluster import ray_cluster
+    from cluster.launch import ray_cluster
 
     ray_cluster.apply_ray_environment()  # before anything imports ray
     import ray

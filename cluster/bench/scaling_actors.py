@@ -1,6 +1,6 @@
 """Ray-side parts of the no-env transport bound of `credit bench scaling`.
 
-Imports Ray: import this module only after `cluster.ray_cluster.apply_ray_environment()`.
+Imports Ray: import this module only after `cluster.launch.ray_cluster.apply_ray_environment()`.
 
 `SyntheticActor` is `RolloutActor.run` without the env: the same coordinator `sync` per
 round, the same `BufferClient` inserting a round of `num_envs` whole episodes per request,
@@ -23,8 +23,8 @@ from actors.rollout import clock_seq
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import EpisodeSchema
 from cluster.bench.common import synthetic_episode
-from cluster.loop_stats import LoopStats
 from cluster.messages import ActorCounters, ActorStats
+from cluster.metrics.loop_stats import LoopStats
 
 
 @ray.remote(max_restarts=0, max_concurrency=2)

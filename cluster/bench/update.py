@@ -24,9 +24,9 @@ from actors.policy import ExplorationConfig
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
 from cluster.bench.common import emit
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
-from cluster.run_config import load_train_config
+from cluster.config.train import load_train_config
+from cluster.errors import UsageError
 from learner.registry import get_algo
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from cluster import ray_cluster
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
+from cluster.errors import UsageError
+from cluster.launch import ray_cluster
 
 
 def register(sub: argparse._SubParsersAction) -> None:

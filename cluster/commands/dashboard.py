@@ -13,7 +13,7 @@ import logging
 from pathlib import Path
 
 from cluster.commands import add_command
-from cluster.config import ConfigError, build
+from cluster.config.schema import ConfigError, build
 from cluster.dashboard.server import (
     DashboardConfig,
     DashboardServer,
@@ -21,8 +21,8 @@ from cluster.dashboard.server import (
     PrometheusSource,
     Source,
 )
-from cluster.metrics import parse_target, read_file_sd, read_runs_sd, runs_sd_dir
-from cluster.prometheus import running_url
+from cluster.metrics.discovery import parse_target, read_file_sd, read_runs_sd, runs_sd_dir
+from cluster.metrics.prometheus import running_url
 
 # ConfigError (not cluster.cli.UsageError, which would be a circular import) -> exit code 2.
 

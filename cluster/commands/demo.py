@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from actors.envs.registry import make_vec_env
-from cluster import demo_report
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command, train
+from cluster.dashboard import report as demo_report
 from cluster.dashboard.server import DashboardConfig, DashboardServer, ExporterSource
-from cluster.metrics import read_file_sd
+from cluster.errors import UsageError
+from cluster.metrics.discovery import read_file_sd
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """`credit inspect relevance --run DIR`: per-agent credit of a trained run (see
-cluster/inspect_relevance.py), as JSON, PNG and an animated GIF of one battle."""
+cluster/inspect/relevance.py), as JSON, PNG and an animated GIF of one battle."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
+from cluster.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_relevance(args: argparse.Namespace) -> int:
-    from cluster.inspect_relevance import inspect
+    from cluster.inspect.relevance import inspect
 
     if args.episodes < 1 or args.max_frames < 1:
         raise UsageError("--episodes and --max-frames must be >= 1")

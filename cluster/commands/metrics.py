@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from cluster import prometheus as prom
 from cluster.commands import add_command
-from cluster.config import build
+from cluster.config.schema import build
+from cluster.metrics import prometheus as prom
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -13,13 +13,17 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from cluster import repro_curves, repro_emcac, repro_matrix, repro_redundancy, repro_smac
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
-from cluster.ray_cluster import UnreachableClusterError
-from cluster.repro_fanout import FanOutConfig
-from cluster.run_config import load_train_config
-from cluster.trainer import write_json
+from cluster.config.train import load_train_config
+from cluster.core import write_json
+from cluster.errors import UsageError
+from cluster.launch.ray_cluster import UnreachableClusterError
+from cluster.repro import curves as repro_curves
+from cluster.repro import emcac as repro_emcac
+from cluster.repro import matrix as repro_matrix
+from cluster.repro import redundancy as repro_redundancy
+from cluster.repro import smac as repro_smac
+from cluster.repro.fanout import FanOutConfig
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -52,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--t-max",
         type=int,
         default=None,
-        help="env steps per run (default: cluster/configs/envs/matrix.yaml)",
+        help="env steps per run (default: cluster/config/layers/envs/matrix.yaml)",
     )
     _add_run_options(m)
     m.set_defaults(func=cmd_matrix)

@@ -13,11 +13,12 @@ from pathlib import Path
 
 import yaml
 
-from cluster.cli_errors import UsageError
 from cluster.commands import add_command
-from cluster.config import ConfigError
-from cluster.run_config import TrainConfig, default_files, load_train_config
-from cluster.trainer import EvalRecord, LocalTrainer, write_json
+from cluster.config.schema import ConfigError
+from cluster.config.train import TrainConfig, default_files, load_train_config
+from cluster.core import EvalRecord, write_json
+from cluster.errors import UsageError
+from cluster.launch.local import LocalTrainer
 from learner.common import NonFiniteLossError
 from learner.registry import ALGOS
 
@@ -184,10 +185,10 @@ def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:
 
 
 def _train_cluster(cfg, out: Path, args: argparse.Namespace):
-    from cluster import ray_cluster
+    from cluster.launch import ray_cluster
 
     ray_cluster.apply_ray_environment()  # before anything imports ray: it reads them at import
-    from cluster.cluster_trainer import ClusterTrainer
+    from cluster.launch.cluster import ClusterTrainer
 
     try:
         where = ray_cluster.connect(args.address, num_cpus=max(2, cfg.cluster.actors + 1))

@@ -24,11 +24,11 @@ from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 from typing import Any, Protocol
 
-from cluster.config import ConfigError
+from cluster.config.schema import ConfigError
 from cluster.dashboard import local
 from cluster.dashboard.panels import PANELS, Panel
-from cluster.metrics import QuietHTTPServer
-from cluster.prometheus import query_range
+from cluster.metrics.http import QuietHTTPServer
+from cluster.metrics.prometheus import query_range
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from cluster import metrics as m
+from cluster.metrics import discovery
 from tests.cluster.polling import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,7 +33,9 @@ def running_training(tmp_path_factory):
     sd = out / "run" / "targets.json"
     try:
         targets = wait_for(
-            lambda: sd.exists() and len(m.read_file_sd(sd)) == 4 and m.read_file_sd(sd),
+            lambda: (
+                sd.exists() and len(discovery.read_file_sd(sd)) == 4 and discovery.read_file_sd(sd)
+            ),
             timeout_s=180,
             what="the training's file-SD file",
         )

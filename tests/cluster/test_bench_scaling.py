@@ -9,7 +9,7 @@ from buffer_service.config import BufferConfig, RateLimiterConfig, TableConfig
 from buffer_service.server import start_server_thread
 from cluster.bench import scaling_stats as st
 from cluster.bench.scaling import limiter_off
-from cluster.loop_stats import LoopStats
+from cluster.metrics.loop_stats import LoopStats
 from tests.buffer_service.conftest import SCHEMA, make_episode
 
 # /proc/<pid>/stat of a process whose name has a space and a ')' in it; utime 120, stime 30.

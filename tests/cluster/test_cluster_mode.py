@@ -15,7 +15,7 @@ import torch
 from buffer_service.config import BufferConfig, TableConfig
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
-from cluster import ray_cluster
+from cluster.launch import ray_cluster
 from tests.cluster.episodes import assert_same_first_episodes
 from tests.cluster.polling import wait_for
 
@@ -102,7 +102,8 @@ def test_emcac_trains_in_cluster_mode_on_both_tables(tmp_path, env):
     """EM-CAC in cluster mode: every learner step takes its 32 cycling episodes and its 32
     replay episodes for the extra critic pass from the buffer service, and no sample of the
     cycling table is spent on a step that did not happen."""
-    from cluster.run_config import data_plan, load_train_config
+    from cluster.config.plan import data_plan
+    from cluster.config.train import load_train_config
 
     out = tmp_path / "run"
     args = ["--algo", "emcac", "--env", "skirmish/3m", "--mode", "cluster", "--actors", "2"]
@@ -225,7 +226,7 @@ def test_kill9_learner_then_resume_continues_counters(tmp_path, env):
 # alone (it is answered before and after the down).
 BYSTANDER = """
 import sys
-from cluster.ray_cluster import connect
+from cluster.launch.ray_cluster import connect
 connect(None, 1)
 import ray
 one = ray.remote(lambda: 1)

@@ -2,8 +2,8 @@
 
 import pytest
 
-from cluster.config import ConfigError, parse_overrides, read_yaml
-from cluster.run_config import load_train_config
+from cluster.config.schema import ConfigError, parse_overrides, read_yaml
+from cluster.config.train import load_train_config
 
 
 def test_shipped_layers_apply_seed_hyper_parameters():

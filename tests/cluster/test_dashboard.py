@@ -11,8 +11,6 @@ import urllib.request
 
 import pytest
 
-from cluster import metrics as m
-from cluster import prometheus as prom
 from cluster.cli import main
 from cluster.dashboard import local
 from cluster.dashboard.panels import PANELS, Query
@@ -23,6 +21,10 @@ from cluster.dashboard.server import (
     PrometheusSource,
     panels_payload,
 )
+from cluster.metrics import discovery
+from cluster.metrics import exporters as m
+from cluster.metrics import http as mhttp
+from cluster.metrics import prometheus as prom
 
 
 def snap(t, **series):
@@ -124,10 +126,10 @@ def _fake_fetch(target: str) -> str:
 def exporters():
     actors = [m.ActorMetrics(i) for i in range(2)]
     learner = m.LearnerMetrics()
-    eps = [m.serve(a.registry) for a in actors] + [m.serve(learner.registry)]
+    eps = [mhttp.serve(a.registry) for a in actors] + [mhttp.serve(learner.registry)]
     yield actors, learner, [f"{h}:{p}" for h, p in eps]
     for ep in eps:
-        m.stop(ep)
+        mhttp.stop(ep)
 
 
 def test_exporter_source_serves_panels_over_http(exporters):
@@ -166,7 +168,7 @@ def test_exporter_source_serves_panels_over_http(exporters):
 @pytest.mark.skipif(shutil.which("prometheus") is None, reason="prometheus not on PATH")
 def test_every_panel_query_is_valid_promql(exporters, tmp_path):
     targets = exporters[2]
-    sd = m.write_file_sd(tmp_path / "sd.json", [m.parse_target(t) for t in targets])
+    sd = discovery.write_file_sd(tmp_path / "sd.json", [discovery.parse_target(t) for t in targets])
     state = prom.start(prom.PrometheusConfig(port=0, sd_file=str(sd), state_dir=str(tmp_path)))
     try:
         payload = panels_payload(PrometheusSource(state.url, DashboardConfig()), 60, time.time())

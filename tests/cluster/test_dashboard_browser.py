@@ -14,14 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from cluster import metrics as m
-from cluster import prometheus as prom
 from cluster.dashboard.server import (
     DashboardConfig,
     DashboardServer,
     ExporterSource,
     PrometheusSource,
 )
+from cluster.metrics import discovery
+from cluster.metrics import prometheus as prom
 from tests.cluster.polling import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -119,7 +119,9 @@ def test_dashboard_scraping_exporters(running_training, browser):
 
 @pytest.mark.skipif(shutil.which("prometheus") is None, reason="prometheus not on PATH")
 def test_dashboard_reading_prometheus(running_training, browser, tmp_path):
-    sd = m.write_file_sd(tmp_path / "sd.json", [m.parse_target(t) for t in running_training])
+    sd = discovery.write_file_sd(
+        tmp_path / "sd.json", [discovery.parse_target(t) for t in running_training]
+    )
     state = prom.start(prom.PrometheusConfig(port=0, sd_file=str(sd), state_dir=str(tmp_path)))
     cfg = DashboardConfig(port=0, range_s=120)
     server = DashboardServer(cfg, PrometheusSource(state.url, cfg)).start()

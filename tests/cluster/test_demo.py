@@ -16,8 +16,8 @@ import pytest
 from PIL import Image
 
 from cluster.cli import main
-from cluster.demo_report import write_report
-from cluster.trainer import Progress
+from cluster.core import Progress
+from cluster.dashboard.report import write_report
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,7 +40,7 @@ def test_the_report_evaluates_the_saved_policy_and_writes_curve_and_gif(tmp_path
 
 def test_progress_lines_give_env_steps_win_rate_and_throughput(caplog):
     bar = Progress(total=1000, every_s=0.0)  # not a terminal under pytest: log lines
-    with caplog.at_level(logging.INFO, logger="cluster.trainer"):
+    with caplog.at_level(logging.INFO, logger="cluster.core"):
         bar.update(100, "win rate 0.10")
         time.sleep(0.05)
         bar.update(300, "win rate 0.40")

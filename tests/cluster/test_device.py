@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cluster.config import ConfigError
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.schema import ConfigError
+from cluster.config.train import load_train_config
+from cluster.launch.local import LocalTrainer
 
 # QMIX on skirmish/3m, small enough for the fast tier: recurrent agents, the mixer, the replay
 # and the greedy evaluation all run; a batch of 4 from the first 8 episodes.

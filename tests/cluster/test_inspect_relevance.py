@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from cluster.cli import main
-from cluster.inspect_relevance import credit, find_checkpoint, load_member, play
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.train import load_train_config
+from cluster.inspect.relevance import credit, find_checkpoint, load_member, play
+from cluster.launch.local import LocalTrainer
 
 ENV = "skirmish/bane_z1"  # 1 zergling + 4 banelings against 20 + 4: short episodes
 SMALL = ["run.test_episodes=1", "run.num_envs=1", "replay.batch_size=2", "algo.agent.hidden=8"]

@@ -15,12 +15,13 @@ from buffer_service.config import RateLimiterConfig, TableConfig
 from buffer_service.episode import EpisodeError
 from buffer_service.local import LocalBuffer
 from buffer_service.tables import Table
-from cluster.buffer_proc import table_arg
 from cluster.commands.buffer import parse_table
-from cluster.config import ConfigError
+from cluster.config.plan import data_plan
+from cluster.config.schema import ConfigError
+from cluster.config.train import load_train_config
+from cluster.launch.buffer_proc import table_arg
+from cluster.launch.local import LocalTrainer
 from cluster.messages import ActorConfig, actor_seed
-from cluster.run_config import data_plan, load_train_config
-from cluster.trainer import LocalTrainer
 from learner.registry import ALGOS
 
 TWO_STEP = ["run.test_interval=50", "replay.batch_size=4", "replay.capacity=100000"]
@@ -102,7 +103,7 @@ def test_modes_refuse_what_they_cannot_do_naming_the_key(tmp_path):
     with pytest.raises(ConfigError, match=r"run\.max_policy_lag"):
         LocalTrainer(_cfg("vdn", "matrix/two_step", "run.max_policy_lag=3"), n_ensemble=2)
     pytest.importorskip("ray")
-    from cluster.cluster_trainer import ClusterTrainer
+    from cluster.launch.cluster import ClusterTrainer
 
     with pytest.raises(ConfigError, match="n_ensemble=2"):
         ClusterTrainer(_cfg(), tmp_path, n_ensemble=2)
@@ -153,7 +154,7 @@ def test_buffer_service_tables_keep_replacement_on_the_command_line():
 
 def test_actor_config_holds_only_the_actor_section(tmp_path):
     pytest.importorskip("ray")
-    from cluster.cluster_trainer import ClusterTrainer
+    from cluster.launch.cluster import ClusterTrainer
 
     trainer = ClusterTrainer(_cfg("qmix", "matrix/two_step", "run.seed=5"), tmp_path)
     ac = trainer.acting.actor_config(2)

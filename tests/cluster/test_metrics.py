@@ -1,4 +1,4 @@
-"""cluster.metrics: exact names, per-component registries, the HTTP exporter, file SD."""
+"""cluster.metrics.exporters: exact names, per-component registries, the HTTP exporter, file SD."""
 
 from __future__ import annotations
 
@@ -16,7 +16,9 @@ import pytest
 from prometheus_client import CollectorRegistry, Gauge
 from prometheus_client.parser import text_string_to_metric_families
 
-from cluster import metrics as m
+from cluster.metrics import discovery
+from cluster.metrics import exporters as m
+from cluster.metrics import http as mhttp
 
 DESIGN_ACTOR_LEARNER = {
     "credit_env_steps_total",
@@ -55,7 +57,7 @@ def test_names_match_design_section_5():
 
 def test_several_exporters_in_one_process_count_separately():
     a0, a1, learner = m.ActorMetrics(0), m.ActorMetrics("1"), m.LearnerMetrics()
-    eps = [m.serve(a0.registry), m.serve(a1.registry), m.serve(learner.registry)]
+    eps = [mhttp.serve(a0.registry), mhttp.serve(a1.registry), mhttp.serve(learner.registry)]
     try:
         assert len({p for _, p in eps}) == 3 and all(p > 0 for _, p in eps)
         a0.record(episodes=2, env_steps=57)
@@ -70,7 +72,7 @@ def test_several_exporters_in_one_process_count_separately():
         assert ("credit_env_steps_total", (("actor", "1"),)) not in s0
     finally:
         for ep in eps:
-            m.stop(ep)
+            mhttp.stop(ep)
 
 
 class _SlowCollector:
@@ -92,7 +94,7 @@ def test_a_scraper_that_hangs_up_early_is_no_error_and_the_exporter_keeps_servin
     Gauge("credit_probe", "probe", registry=registry).set(3)
     slow = _SlowCollector()
     registry.register(slow)
-    ep = m.serve(registry)
+    ep = mhttp.serve(registry)
     try:
         client = socket.create_connection(ep, timeout=5)
         client.sendall(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -104,13 +106,13 @@ def test_a_scraper_that_hangs_up_early_is_no_error_and_the_exporter_keeps_servin
         slow.release.set()
         assert scrape(ep)[("credit_probe", ())] == 3
     finally:
-        m.stop(ep)
+        mhttp.stop(ep)
     assert "Traceback" not in capsys.readouterr().err
 
 
 def test_learner_records_updates_lag_tests_and_restarts():
     lm = m.LearnerMetrics()
-    ep = m.serve(lm.registry)
+    ep = mhttp.serve(lm.registry)
     try:
         lm.record_update(0.02, {"critic": 0.5, "actor": -0.25}, weights_version=3)
         lm.record_update(0.04, {"critic": 0.4, "actor": -0.2}, weights_version=4)
@@ -121,7 +123,7 @@ def test_learner_records_updates_lag_tests_and_restarts():
         lm.actor_restarted()
         s = scrape(ep)
     finally:
-        m.stop(ep)
+        mhttp.stop(ep)
     assert s[("credit_learner_updates_total", ())] == 2
     assert s[("credit_learner_update_seconds_count", ())] == 2
     assert s[("credit_learner_update_seconds_sum", ())] == pytest.approx(0.06)
@@ -152,7 +154,7 @@ def test_no_label_other_than_the_bounded_ones():
         lambda: m.LearnerMetrics().record_update(-0.1, {}, 1),
         lambda: m.LearnerMetrics().record_test(1.0, win_rate=1.5),
         lambda: m.LearnerMetrics().set_kl_masked_fraction(2.0),
-        lambda: m.serve(m.CollectorRegistry(), port=70000),
+        lambda: mhttp.serve(m.CollectorRegistry(), port=70000),
     ],
 )
 def test_bad_values_are_refused(call):
@@ -162,15 +164,15 @@ def test_bad_values_are_refused(call):
 
 def test_file_sd_roundtrip_and_format(tmp_path):
     path = tmp_path / "sd" / "targets.json"
-    m.write_file_sd(path, [("127.0.0.1", 9101), ("127.0.0.1", 9102)], {"job": "credit"})
+    discovery.write_file_sd(path, [("127.0.0.1", 9101), ("127.0.0.1", 9102)], {"job": "credit"})
     assert json.loads(path.read_text()) == [
         {"targets": ["127.0.0.1:9101", "127.0.0.1:9102"], "labels": {"job": "credit"}}
     ]
-    assert m.read_file_sd(path) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
-    m.write_file_sd(path, [])  # rewritten in place; no temporary file left behind
+    assert discovery.read_file_sd(path) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
+    discovery.write_file_sd(path, [])  # rewritten in place; no temporary file left behind
     assert json.loads(path.read_text()) == []
     assert [p.name for p in path.parent.iterdir()] == ["targets.json"]
-    assert m.read_file_sd(tmp_path / "missing.json") == []
+    assert discovery.read_file_sd(tmp_path / "missing.json") == []
 
 
 @pytest.mark.parametrize(
@@ -184,22 +186,22 @@ def test_file_sd_roundtrip_and_format(tmp_path):
 )
 def test_file_sd_refuses_bad_input(tmp_path, targets, labels):
     with pytest.raises(ValueError):
-        m.write_file_sd(tmp_path / "t.json", targets, labels)
+        discovery.write_file_sd(tmp_path / "t.json", targets, labels)
 
 
 def test_read_file_sd_names_a_broken_file(tmp_path):
     bad = tmp_path / "t.json"
     bad.write_text("{not json")
     with pytest.raises(ValueError, match=r"t\.json"):
-        m.read_file_sd(bad)
+        discovery.read_file_sd(bad)
     with pytest.raises(ValueError, match="host:port"):
-        m.parse_target("localhost")
+        discovery.parse_target("localhost")
 
 
 def _run_folder(root, name, pid, port):
     """A run folder as a cluster run leaves it: its own targets.json and cluster.json."""
     out = root / name
-    m.write_file_sd(out / "targets.json", [("127.0.0.1", port)], {"run": name})
+    discovery.write_file_sd(out / "targets.json", [("127.0.0.1", port)], {"run": name})
     (out / "cluster.json").write_text(json.dumps({"learner": {"pid": pid}}))
     return out
 
@@ -208,22 +210,24 @@ def test_each_run_links_its_own_targets_into_the_machines_runs_folder(tmp_path, 
     monkeypatch.setenv("CREDIT_STATE_DIR", str(tmp_path / "state"))
     a = _run_folder(tmp_path, "a", os.getpid(), 9101)
     b = _run_folder(tmp_path / "elsewhere", "b", os.getpid(), 9102)
-    link_a = m.register_run_sd(a / "targets.json")
-    link_b = m.register_run_sd(b / "targets.json")
-    assert link_a != link_b and link_a.parent == link_b.parent == m.runs_sd_dir()
+    link_a = discovery.register_run_sd(a / "targets.json")
+    link_b = discovery.register_run_sd(b / "targets.json")
+    assert link_a != link_b and link_a.parent == link_b.parent == discovery.runs_sd_dir()
     assert link_a.resolve() == (a / "targets.json").resolve()  # the run's own file
-    assert m.register_run_sd(a / "targets.json") == link_a  # one link per run folder
-    assert sorted(m.read_runs_sd()) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
-    m.write_file_sd(a / "targets.json", [("127.0.0.1", 9201)])  # the run rewrites its file
-    assert sorted(m.read_runs_sd()) == [("127.0.0.1", 9102), ("127.0.0.1", 9201)]
-    m.unregister_run_sd(link_a)
-    assert m.read_runs_sd() == [("127.0.0.1", 9102)]
+    assert discovery.register_run_sd(a / "targets.json") == link_a  # one link per run folder
+    assert sorted(discovery.read_runs_sd()) == [("127.0.0.1", 9101), ("127.0.0.1", 9102)]
+    discovery.write_file_sd(a / "targets.json", [("127.0.0.1", 9201)])  # the run rewrites its file
+    assert sorted(discovery.read_runs_sd()) == [("127.0.0.1", 9102), ("127.0.0.1", 9201)]
+    discovery.unregister_run_sd(link_a)
+    assert discovery.read_runs_sd() == [("127.0.0.1", 9102)]
 
 
 def test_runs_that_are_gone_are_pruned(tmp_path, monkeypatch):
     monkeypatch.setenv("CREDIT_STATE_DIR", str(tmp_path / "state"))
     links = {
-        name: m.register_run_sd(_run_folder(tmp_path, name, os.getpid(), port) / "targets.json")
+        name: discovery.register_run_sd(
+            _run_folder(tmp_path, name, os.getpid(), port) / "targets.json"
+        )
         for name, port in (("live", 9101), ("killed", 9102), ("removed", 9103))
     }
     done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
@@ -231,6 +235,6 @@ def test_runs_that_are_gone_are_pruned(tmp_path, monkeypatch):
     killed = {"learner": {"pid": int(done.stdout)}}  # exited and reaped: no such process
     (tmp_path / "killed" / "cluster.json").write_text(json.dumps(killed))
     shutil.rmtree(tmp_path / "removed")
-    assert sorted(m.prune_run_sd()) == sorted([links["killed"], links["removed"]])
-    assert sorted(m.runs_sd_dir().iterdir()) == [links["live"]]
-    assert m.read_runs_sd() == [("127.0.0.1", 9101)]
+    assert sorted(discovery.prune_run_sd()) == sorted([links["killed"], links["removed"]])
+    assert sorted(discovery.runs_sd_dir().iterdir()) == [links["live"]]
+    assert discovery.read_runs_sd() == [("127.0.0.1", 9101)]

@@ -1,4 +1,4 @@
-"""cluster.prometheus and `credit metrics up/down`: the generated config, the missing-binary
+"""cluster.metrics.prometheus and `credit metrics up/down`: the generated config, the missing-binary
 message, and a real Prometheus scraping real exporters (skipped when it is not installed)."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import sys
 import pytest
 import yaml
 
-from cluster import metrics as m
-from cluster import prometheus as prom
 from cluster.cli import main
+from cluster.metrics import discovery
+from cluster.metrics import prometheus as prom
 from tests.cluster.polling import wait_for
 
 HAVE_PROMETHEUS = shutil.which("prometheus") is not None
@@ -36,7 +36,7 @@ def test_render_config_scrapes_the_sd_file(tmp_path):
     ("field", "value"), [("port", 70000), ("scrape_interval_s", 0.0), ("ready_timeout_s", 0.0)]
 )
 def test_bad_config_is_refused(field, value):
-    from cluster.config import ConfigError, build
+    from cluster.config.schema import ConfigError, build
 
     with pytest.raises(ConfigError, match=field if field != "port" else "port"):
         build(prom.PrometheusConfig, {field: value})
@@ -68,7 +68,9 @@ def test_real_prometheus_scrapes_a_cluster_training(running_training, tmp_path, 
     counter rises, and the learner's update counter and the buffer's size are there."""
     sd = tmp_path / "targets.json"
     state_dir = tmp_path / "state"
-    m.write_file_sd(sd, [m.parse_target(t) for t in running_training], {"cluster": "test"})
+    discovery.write_file_sd(
+        sd, [discovery.parse_target(t) for t in running_training], {"cluster": "test"}
+    )
     args = ["metrics", "up", "--sd-file", str(sd), "--port", "0", "--state-dir", str(state_dir)]
     assert main(args) == 0
     try:
@@ -130,7 +132,7 @@ def test_terminate_returns_only_once_the_child_is_gone_and_reaped(ignores_sigter
         with pytest.raises(ProcessLookupError):
             os.kill(child.pid, 0)
     finally:
-        if child.returncode is None and m.pid_alive(child.pid):
+        if child.returncode is None and discovery.pid_alive(child.pid):
             child.kill()
         child.stdout.close()
 
@@ -164,7 +166,7 @@ def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
     try:
         for name, out in runs.items():
             wait_for(
-                lambda out=out: len(m.read_file_sd(out / "targets.json")) == 3,
+                lambda out=out: len(discovery.read_file_sd(out / "targets.json")) == 3,
                 timeout_s=240,
                 what=f"{name}'s targets.json (learner, actor, buffer service)",
                 proc=procs[name][0],

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from cluster.cli import main
-from cluster.repro_curves import summarise_curve
+from cluster.repro.curves import summarise_curve
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,5 @@
 """`credit repro ... --address`: the run options of every repro command, the clear error for a
-cluster that is not there, and the driver's collector and local pool (cluster.repro_fanout).
+cluster that is not there, and the driver's collector and local pool (cluster.repro.fanout).
 The runs on a real multi-process Ray cluster are in test_repro_cluster.py (slow tier)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 from cluster.cli import build_parser, main
 from cluster.commands.repro import fan_out_config
-from cluster.repro_fanout import (
+from cluster.repro.fanout import (
     Collector,
     FanOutConfig,
     Pair,
@@ -107,7 +107,7 @@ def test_collector_restarts_a_log_and_drops_a_lost_attempts_lines(tmp_path, capl
     c.handle(PairEvent(pair, "evaluated", first, '{"t_env": 2}'))
     c.handle(PairEvent(pair, "evaluated", first, '{"t_env": 22}\n'))
     assert _lines(log) == ['{"t_env": 2}', '{"t_env": 22}']
-    with caplog.at_level("INFO", logger="cluster.repro_fanout"):
+    with caplog.at_level("INFO", logger="cluster.repro.fanout"):
         c.handle(PairEvent(pair, "started", second))  # the retry of a lost attempt
     assert _lines(log) == []
     assert "pair vdn@matrix/two_step restarted on h (pid 12), attempt 2" in caplog.text
@@ -115,7 +115,7 @@ def test_collector_restarts_a_log_and_drops_a_lost_attempts_lines(tmp_path, capl
     c.handle(PairEvent(pair, "evaluated", second, '{"t_env": 2}'))
     c.handle(PairEvent(pair, "finished", first, wall_s=9.0))
     assert c.finished == set()
-    with caplog.at_level("INFO", logger="cluster.repro_fanout"):
+    with caplog.at_level("INFO", logger="cluster.repro.fanout"):
         c.handle(PairEvent(pair, "finished", second, wall_s=3.0))
     assert _lines(log) == ['{"t_env": 2}']
     assert c.finished == {pair}
@@ -132,7 +132,7 @@ def test_status_line_counts_each_pairs_latest_evaluation(tmp_path, caplog):
     for pair, t, returns in rows:
         line = json.dumps({"t_env": t, "returns": returns})
         c.handle(PairEvent(pair, "evaluated", f"h:1:{pair.algo}", line))
-    with caplog.at_level("INFO", logger="cluster.trainer"):
+    with caplog.at_level("INFO", logger="cluster.core"):
         c.tick()
     assert (
         "t_env 44/200 0/2 pairs done; return vdn@matrix/two_step 8.00, iql@matrix/two_step 7.00"

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
-from cluster.repro_curves import Curve
-from cluster.repro_redundancy import final_stats, ordered, write_figures, zergling_envs
+from cluster.repro.curves import Curve
+from cluster.repro.redundancy import final_stats, ordered, write_figures, zergling_envs
 
 
 def _curve(algo: str, env: str, won: list[list[float]]) -> Curve:

@@ -6,9 +6,9 @@ import json
 import re
 from pathlib import Path
 
-from cluster import metrics as m
 from cluster.dashboard import grafana
 from cluster.dashboard.panels import PANELS, metric_names
+from cluster.metrics import exporters as m
 
 ROOT = Path(__file__).resolve().parents[2]
 GRAFANA = ROOT / "deploy" / "grafana" / "credit.json"

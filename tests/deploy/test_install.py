@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cluster.config import ConfigError
-from cluster.run_config import config_root, default_files, load_train_config
+from cluster.config.schema import ConfigError
+from cluster.config.train import config_root, default_files, load_train_config
 from learner.registry import ALGOS
 
 ROOT = Path(__file__).resolve().parents[2]

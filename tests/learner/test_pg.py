@@ -279,7 +279,7 @@ def test_normalised_advantages_have_unit_spread_on_real_entries_only():
 
 @pytest.mark.parametrize("algo", ["cac", "ecac", "mcac", "emcac"])
 def test_advantage_norm_is_on_by_default_and_can_be_turned_off(algo):
-    from cluster.run_config import load_train_config
+    from cluster.config.train import load_train_config
 
     assert CACConfig().advantage_norm is True
     assert load_train_config(algo, "skirmish/3m").algo.advantage_norm is True

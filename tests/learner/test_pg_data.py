@@ -6,7 +6,8 @@ import pytest
 
 from buffer_service.episode import Episode
 from buffer_service.local import LocalBuffer
-from cluster.run_config import data_plan, load_train_config
+from cluster.config.plan import data_plan
+from cluster.config.train import load_train_config
 
 
 def _episode(seq: int) -> Episode:

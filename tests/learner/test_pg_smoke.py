@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from cluster.cli import main
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.train import load_train_config
+from cluster.launch.local import LocalTrainer
 from learner.registry import ALGOS
 
 PG_ALGOS = sorted(name for name, spec in ALGOS.items() if spec.family == "pg")

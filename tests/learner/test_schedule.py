@@ -4,9 +4,9 @@ target refreshes, reward normalisation, optimisers, and the replay ratio in the 
 import pytest
 import torch
 
-from cluster.config import ConfigError
-from cluster.run_config import load_train_config
-from cluster.trainer import LocalTrainer
+from cluster.config.schema import ConfigError
+from cluster.config.train import load_train_config
+from cluster.launch.local import LocalTrainer
 from learner.common import EpisodeClock, RewardNorm, Updater
 from learner.networks import AgentNet, unroll
 

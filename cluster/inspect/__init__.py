@@ -1,0 +1,1 @@
+"""Looking inside trained runs: credit per agent (`relevance`) and RDN's credit diagnostics."""

@@ -1,0 +1,208 @@
+"""`--mode local`: the launcher `LocalTrainer` and the in-process sides of
+`cluster.loop.TrainLoop` it runs with, one `RolloutWorker` (actor 0) and one set of buffer
+tables per ensemble member."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from actors.envs.registry import make_vec_env
+from actors.rollout import RolloutWorker
+from buffer_service.episode import EpisodeBatch
+from buffer_service.local import LocalBuffer
+from cluster.config.train import TrainConfig
+from cluster.core import EvalRecord, TrainerCore
+from cluster.loop import Pair, RateLimitDeadlockError, TrainLoop, check_modes, drop_stale
+from cluster.messages import actor_seed
+from cluster.metrics.loop_stats import LoopStats
+
+log = logging.getLogger(__name__)
+
+BUFFER_FOLDER = "buffer"  # in a checkpoint: buffer/member-<k>, one snapshot folder each
+
+
+class LocalData:
+    """E members' buffer tables in this process (`buffer_service.local.LocalBuffer`).
+
+    Args:
+        core: the run (its data plan, seed, schema, learner version).
+        stats: the loop's counters.
+    """
+
+    def __init__(self, core: TrainerCore, stats: LoopStats) -> None:
+        self.core, self.stats, self.plan = core, stats, core.plan
+        seed, schema = core.cfg.run.seed, core.info.schema()
+        self.buffers = [
+            LocalBuffer(self.plan.tables, seed=seed * 1000 + k, schema=schema)
+            for k in range(core.E)
+        ]
+        self.update_credit = 0.0  # learner steps owed to the episodes inserted so far
+
+    def insert(self, episodes: list, per_member: int) -> None:
+        """Member k's episodes are episodes[k * per_member : (k + 1) * per_member]."""
+        for k, buf in enumerate(self.buffers):
+            buf.insert(episodes[k * per_member : (k + 1) * per_member])
+
+    def catch_up(self) -> Iterator[Pair]:
+        """The batches the rate limiter needs sampled before it lets the next insert in (what
+        a Ray actor's insert waits for); raises RateLimitDeadlockError when none can be sampled."""
+        while not all(b.can_insert() for b in self.buffers):
+            pair = self.sample()
+            if pair is None:
+                raise RateLimitDeadlockError(
+                    "the rate limiter holds back the next insert, but no batch can be sampled "
+                    f"(tables {[t.name for t in self.plan.tables]}: "
+                    f"{self.buffers[0].stats()['tables']}); check the tables' "
+                    "sizes and batch sizes (replay.*, cycling.*, run.num_envs)"
+                )
+            yield pair
+
+    def batches(self, new_episodes: int) -> Iterator[Pair]:
+        """plan.updates_per_episode batches per new episode (of one member) once the tables
+        can serve one; steps owed while they could not are dropped, not caught up (PyMARL's
+        warm-up), and a fraction carries over to the next round."""
+        self.update_credit += new_episodes * self.plan.updates_per_episode
+        while self.update_credit >= 1.0:
+            pair = self.sample()
+            if pair is None:
+                self.update_credit = 0.0
+                return
+            self.update_credit -= 1.0
+            yield pair
+
+    def sample(self) -> Pair | None:
+        """The next learner batch (and extra batch) of every member, or None."""
+        plan = self.plan
+        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
+            return None
+        if plan.extra_table and not all(
+            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
+        ):
+            return None
+        batch = self._take(plan.table, plan.batch_size)
+        if batch is None:
+            return None
+        extra = self._take(plan.extra_table, plan.extra_batch_size) if plan.extra_table else None
+        if plan.extra_table and extra is None:
+            return None
+        return batch, extra
+
+    def _take(self, table: str, n: int) -> EpisodeBatch | None:
+        limit, version = self.core.cfg.run.max_policy_lag, self.core.learner.updates
+        self.stats.sample_requests += len(self.buffers)
+        members = []
+        for buf in self.buffers:
+            episodes, _ = drop_stale(buf.sample_episodes(table, n), version, limit, self.stats)
+            if not episodes:
+                return None
+            members.append(EpisodeBatch.from_episodes(episodes))
+        return members[0] if len(members) == 1 else EpisodeBatch.stack(members)
+
+    def write(self, folder: Path) -> None:
+        for k, buf in enumerate(self.buffers):
+            buf.write(Path(folder) / BUFFER_FOLDER / f"member-{k}")
+
+    def read(self, folder: Path) -> None:
+        root = Path(folder) / BUFFER_FOLDER
+        if not root.is_dir():
+            log.warning("checkpoint %s holds no buffer tables (an older format); refilling", folder)
+            return
+        for k, buf in enumerate(self.buffers):
+            buf.read(root / f"member-{k}")
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "buffer_rng": [b.rng_state() for b in self.buffers],
+            "update_credit": self.update_credit,
+            "dropped_stale": self.stats.dropped_stale,
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        for buf, rng in zip(self.buffers, state["buffer_rng"], strict=True):
+            buf.set_rng_state(rng)
+        self.update_credit = state.get("update_credit", 0.0)
+        self.stats.dropped_stale = state.get("dropped_stale", 0)
+
+
+class LocalActing:
+    """Actor 0 in this process: `run.num_envs` envs per member, acting with the learner's
+    network (or a CPU copy, run.acting_weights), inserting each round into `data`.
+
+    Args:
+        core: the run.
+        data: where the rounds go.
+    """
+
+    def __init__(self, core: TrainerCore, data: LocalData) -> None:
+        self.core, self.data = core, data
+        run = core.cfg.run
+        seed = actor_seed(run.seed, 0)
+        venv = make_vec_env(core.cfg.env.id, core.E * run.num_envs, seed=seed, **core.cfg.env.args)
+        self.worker = core.local_worker(venv, seed)
+
+    def act(self) -> tuple[int, int]:
+        """One round of every env, inserted; returns (env steps per member, episodes per
+        member)."""
+        core, per = self.core, self.core.cfg.run.num_envs
+        core.sync_worker(self.worker)
+        result = self.worker.run_round(t_env=core.t_env)
+        self.data.insert(result.episodes, per)
+        return result.env_steps // core.E, per
+
+    def updated(self, seconds: float) -> None:
+        """Nothing to publish: the worker syncs with the learner before each round."""
+
+    def evaluated(self, records: list[EvalRecord]) -> None:
+        """No exporters in local mode."""
+
+    def state(self) -> dict[str, Any]:
+        return {"worker_rng": self.worker.gen.get_state(), "episode_seq": self.worker.episode_seq}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        self.worker.gen.set_state(state["worker_rng"])
+        self.worker.episode_seq = state["episode_seq"]
+
+
+class LocalTrainer:
+    """`--mode local`: the one loop (`cluster.loop.TrainLoop`) with an in-process worker and
+    in-process buffer tables, for E seed-batched members.
+
+    Calling loop::
+
+        trainer = LocalTrainer(cfg, n_ensemble=1)
+        trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
+        trainer.save(path)
+    """
+
+    def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
+        self.core = core = TrainerCore(cfg, n_ensemble, checkpoint_dir)
+        check_modes(core, ensemble_ok=True)
+        self.E = n_ensemble
+        self.stats = LoopStats()
+        self.data = LocalData(core, self.stats)
+        self.acting = LocalActing(core, self.data)
+        self.loop = TrainLoop(core, self.acting, self.data, self.stats)
+
+    @property
+    def worker(self) -> RolloutWorker:
+        """The in-process rollout worker."""
+        return self.acting.worker
+
+    def train(
+        self,
+        on_eval: Callable[[list[EvalRecord]], None] | None = None,
+        progress: bool = False,
+        stop: Callable[[], bool] | None = None,
+    ) -> None:
+        """Train until t_env >= t_max (or `stop()` is true), evaluating every test_interval
+        env steps (`TrainLoop.train`)."""
+        self.loop.train(on_eval, progress, stop)
+
+    def save(self, path: Path) -> None:
+        self.loop.save(path)
+
+    def restore(self, path: Path) -> None:
+        self.loop.restore(path)

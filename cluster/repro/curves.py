@@ -1,0 +1,336 @@
+"""Learning curves on skirmish (or SMAC) maps, shared by `credit repro emcac` (seed Table 5.2,
+Figs. 5.10-5.13) and `credit repro smac` (the value family and RDN).
+
+Each (algorithm, env) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a small
+process pool or as Ray tasks on a cluster (`cluster.repro.fanout`). Every evaluation is appended
+to `evals/<env>__<algo>.jsonl` as it happens (a long
+run that dies keeps what it measured, and `load_evals` rebuilds curves from those files); at
+the end summary.json, curves.json and one <prefix>_<map>.png per env are written: test win rate
+and test return against env steps, win rate against wall time, and the learner diagnostics
+the experiment names.
+
+Summary per (env, algo), win rates in [0, 1]:
+    median_win_rate_last10 / mean_win_rate_last10: each seed's mean test win rate over its last
+        10 evaluations, then the median / mean over seeds (Table 5.2's two numbers);
+    steps_to_50 / steps_to_80 / steps_to_95: the first evaluation's t_env at which the
+        median-over-seeds curve reaches 0.5 / 0.8 / 0.95, or None if it never does;
+    steps_to_*_smoothed: the same on the trailing mean of the median curve over SMOOTH
+        evaluations, at the t_env of the window's last evaluation. One evaluation is 20 greedy
+        episodes per seed, and a barely trained greedy policy can win one of them by luck
+        (skirmish/2s3z at 10k steps, results/pg/README.md); over a window a single lucky or
+        unlucky evaluation cannot decide the figure.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+
+log = logging.getLogger(__name__)
+
+LAST = 10  # evaluations averaged for the final win rate (Table 5.2)
+SMOOTH = 5  # evaluations in the trailing window of the smoothed steps-to figures
+LEVELS = (50, 80, 95)  # win rates (%) of the steps-to figures
+LEARNER_KEYS = (
+    "kl_masked_fraction",
+    "kl_mean",
+    "entropy",
+    "loss_critic",
+    "loss_critic_extra",
+    "advantage_abs_mean",
+    "loss_td",
+    "q_taken_mean",
+    "grad_norm",
+    "loss_agent",
+    "q_tot_mean",
+    "lrp_conservation_gap",
+)
+
+
+@dataclass(frozen=True)
+class Curve:
+    """Every evaluation of one (algo, env) pair: t_env [K]; won and returns [K][seeds];
+    learner diagnostics at each evaluation (means over seeds and over the updates since the
+    previous evaluation; only keys the learner has); wall [K] seconds since the pair started."""
+
+    algo: str
+    env: str
+    t_env: list[int]
+    won: list[list[float]]
+    returns: list[list[float]]
+    wall_s: float
+    learner: list[dict[str, float]] = field(default_factory=list)
+    wall: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class PairOutput:
+    """What a pair's process hands back: its curve and, when asked for, its final checkpoint
+    as files (path relative to the checkpoint folder -> bytes), written by the driver so that
+    a pair on another node saves into the driver's output folder."""
+
+    curve: Curve
+    checkpoint: tuple[tuple[str, bytes], ...] = ()
+
+
+def run_pair(
+    algo: str,
+    env: str,
+    seeds: int,
+    overrides: list[str],
+    threads: int,
+    checkpoint: bool = False,
+    report: Callable[[str], None] | None = None,
+) -> PairOutput:
+    """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer.
+
+    Args:
+        checkpoint: also return the final checkpoint (every seed, `credit train`'s format).
+        report: called with one JSON line per evaluation (the pair's evaluation log).
+    """
+    import torch
+
+    from cluster.config.train import load_train_config
+    from cluster.launch.local import LocalTrainer
+
+    torch.set_num_threads(threads)
+    cfg = load_train_config(algo, env, [], overrides)
+    trainer = LocalTrainer(cfg, n_ensemble=seeds)
+    curve = Curve(algo, env, [], [], [], 0.0)
+    walls: list[float] = []
+    started = time.monotonic()
+
+    def on_eval(records) -> None:
+        curve.t_env.append(records[0].t_env)
+        curve.won.append([float(r.test_won_mean or 0.0) for r in records])
+        curve.returns.append([r.test_return_mean for r in records])
+        means = trainer.core.take_metric_means()  # over the updates since the last evaluation
+        diag = {k: v for k, v in means.items() if k in LEARNER_KEYS}
+        curve.learner.append(diag)
+        walls.append(round(time.monotonic() - started, 1))
+        if report is not None:
+            line = {
+                "env": env,
+                "algo": algo,
+                "t_env": records[0].t_env,
+                "won": curve.won[-1],
+                "returns": curve.returns[-1],
+                "wall_s": walls[-1],
+                **diag,
+            }
+            report(json.dumps(line))
+
+    trainer.train(on_eval=on_eval)
+    if not curve.t_env or curve.t_env[-1] != trainer.core.t_env:
+        on_eval(trainer.core.evaluate())
+    files: tuple[tuple[str, bytes], ...] = ()
+    if checkpoint:
+        with tempfile.TemporaryDirectory() as tmp:
+            trainer.save(Path(tmp) / "ckpt")
+            root = Path(tmp) / "ckpt"
+            files = tuple(
+                (str(f.relative_to(root)), f.read_bytes())
+                for f in sorted(root.rglob("*"))
+                if f.is_file()
+            )
+    done = Curve(
+        algo,
+        env,
+        curve.t_env,
+        curve.won,
+        curve.returns,
+        time.monotonic() - started,
+        curve.learner,
+        walls,
+    )
+    return PairOutput(done, files)
+
+
+def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None:
+    """Write a pair's checkpoint files (PairOutput.checkpoint) into `folder`, replacing what
+    was there only once every file is written."""
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for rel, data in files:
+        path = tmp / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    shutil.rmtree(folder, ignore_errors=True)
+    os.replace(tmp, folder)
+
+
+def load_evals(log_dir: Path, algos: list[str], envs: list[str]) -> list[Curve]:
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped)."""
+    curves = []
+    for env in envs:
+        for algo in algos:
+            path = log_dir / f"{env.replace('/', '-')}__{algo}.jsonl"
+            if not path.exists() or not path.read_text().strip():
+                continue
+            rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+            diag = [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows]
+            curves.append(
+                Curve(
+                    algo,
+                    env,
+                    [r["t_env"] for r in rows],
+                    [r["won"] for r in rows],
+                    [r["returns"] for r in rows],
+                    float(rows[-1]["wall_s"]),
+                    diag,
+                    [float(r["wall_s"]) for r in rows],
+                )
+            )
+    return curves
+
+
+def steps_to(t_env: np.ndarray, median_curve: np.ndarray, level: float) -> int | None:
+    """First t_env at which the median curve reaches `level`, or None."""
+    hit = np.flatnonzero(median_curve >= level - 1e-9)
+    return int(t_env[hit[0]]) if hit.size else None
+
+
+def trailing_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of each run of `window` consecutive values: [K] -> [K - window + 1] (empty when
+    K < window); entry i covers values i .. i + window - 1."""
+    if values.size < window:
+        return np.empty(0)
+    return np.convolve(values, np.ones(window) / window, mode="valid")
+
+
+def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
+    """Table 5.2's numbers and the steps to 50% / 80% / 95% for one pair (module docstring).
+
+    Args:
+        t_env: [K] evaluation times.
+        won: [K][seeds] test win rates.
+    """
+    w = np.asarray(won, dtype=float)
+    per_seed = w[-LAST:].mean(axis=0)
+    median_curve = np.median(w, axis=1)
+    t = np.asarray(t_env)
+    smooth = trailing_mean(median_curve, SMOOTH)
+    t_smooth = t[SMOOTH - 1 :]
+    return {
+        "median_win_rate_last10": float(np.median(per_seed)),
+        "mean_win_rate_last10": float(np.mean(per_seed)),
+        **{f"steps_to_{p}": steps_to(t, median_curve, p / 100) for p in LEVELS},
+        **{f"steps_to_{p}_smoothed": steps_to(t_smooth, smooth, p / 100) for p in LEVELS},
+        "seeds": int(w.shape[1]),
+    }
+
+
+def summarise(curves: list[Curve]) -> dict:
+    """{env: {algo: summarise_curve(...) + final return median and wall time}}."""
+    out: dict = {}
+    for c in curves:
+        cell = summarise_curve(c.t_env, c.won)
+        cell["median_return_last10"] = float(np.median(np.asarray(c.returns)[-LAST:].mean(0)))
+        cell["t_env"] = int(c.t_env[-1])
+        cell["wall_s"] = round(c.wall_s, 1)
+        out.setdefault(c.env, {})[c.algo] = cell
+    return out
+
+
+def plot(
+    curves: list[Curve],
+    env: str,
+    path: Path,
+    diagnostics: tuple[tuple[str, str], ...] = (),
+    title: str | None = None,
+) -> None:
+    """Median test win rate and test return against env steps, and win rate against wall
+    time, with the 25-75 percentile band, one line per algo; then one panel per learner
+    diagnostic (key, label) at each evaluation (means over seeds). `title` replaces the
+    default "<env>: median of N seeds" heading."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = 3 + len(diagnostics)
+    cols = 3 if panels > 4 else 2
+    rows = -(-panels // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False)
+    flat = list(axes.flat)
+    mine = [c for c in curves if c.env == env]
+    names = ["test win rate", "test return", "test win rate", *(lab for _, lab in diagnostics)]
+    for c in mine:
+        t = np.asarray(c.t_env)
+        wall = np.asarray(c.wall) if len(c.wall) == len(c.t_env) else None
+        color = None
+        for ax, data, x in (
+            (flat[0], c.won, t),
+            (flat[1], c.returns, t),
+            (flat[2], c.won, wall),
+        ):
+            if x is None:
+                continue
+            r = np.asarray(data)
+            (line,) = ax.plot(x, np.median(r, axis=1), label=c.algo, color=color)
+            color = line.get_color()
+            ax.fill_between(
+                x,
+                np.percentile(r, 25, axis=1),
+                np.percentile(r, 75, axis=1),
+                alpha=0.2,
+                color=color,
+            )
+        for ax, (key, _) in zip(flat[3:], diagnostics, strict=False):
+            points = [(x, d[key]) for x, d in zip(c.t_env, c.learner, strict=False) if key in d]
+            if points:
+                ax.plot(*zip(*points, strict=True), label=c.algo, color=color)
+    seeds = len(mine[0].won[0]) if mine else 0
+    for i, ax in enumerate(flat):
+        if i >= len(names):
+            ax.set_visible(False)
+            continue
+        ax.set_xlabel("wall seconds" if i == 2 else "env steps")
+        ax.set_ylabel(names[i])
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(loc="upper left")
+    flat[0].set_ylim(-0.02, 1.02)
+    flat[2].set_ylim(-0.02, 1.02)
+    fig.suptitle(title or f"{env}: median of {seeds} seeds, 25-75 percentile band")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(
+    algos: list[str],
+    envs: list[str],
+    seeds: int,
+    overrides: list[str],
+    fan: FanOutConfig,
+    log_dir: Path | None = None,
+    checkpoint_dir: Path | None = None,
+    total_steps: int = 0,
+) -> list[Curve]:
+    """Every (algo, env) pair where `fan` says; curves in (env, algo) order. Each pair's
+    evaluations go to log_dir/<env>__<algo>.jsonl as they happen and, with `checkpoint_dir`,
+    its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes. With
+    `total_steps` (every pair's t_max together), a status line shows the env steps done and
+    each pair's latest median win rate."""
+    pairs = [Pair(a, g) for g in envs for a in algos]
+
+    def on_result(pair: Pair, out: PairOutput) -> None:
+        if checkpoint_dir is not None:
+            write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
+
+    args = (seeds, overrides, 1, checkpoint_dir is not None)
+    status = StatusLine(total_steps, "won", "win") if total_steps else None
+    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result, status)
+    return [o.curve for o in outputs]

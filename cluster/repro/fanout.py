@@ -1,0 +1,343 @@
+"""Run the (algorithm, env) pairs of a `credit repro` experiment: in a local process pool (no
+`--address`, the default) or as Ray tasks across a cluster's nodes (`--address auto` or
+`--address HOST:PORT`).
+
+Both ways report through one collector in the driver. Each pair's process sends a `started`
+event, then one `evaluated` event per evaluation (a JSON line); the driver writes those lines
+to OUT/evals/<env>__<algo>.jsonl as they arrive, so a pair on another node leaves its log in
+the driver's output folder and a run that dies leaves every evaluation it made. The driver
+logs one line per pair as it starts (where), restarts, and finishes (wall time).
+
+On a cluster every pair is one Ray task asking for `cpus_per_pair` CPUs. Ray retries a task
+whose worker process or node dies (`max_retries`); the retry starts the pair again from
+scratch with the same seeds, so its result is the one an uninterrupted run gives, and the
+collector drops the lost attempt's log lines. An exception raised by the pair itself (a bad
+config, a non-finite loss) is not retried: it ends the run, as it does locally.
+
+The Ray side (tasks, the event board, shipping the code to the nodes) is
+`cluster.repro.fanout_ray`, imported only when an address is given.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import queue
+import socket
+import sys
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+log = logging.getLogger(__name__)
+
+POLL_S = 1.0  # how often the driver collects events while pairs run
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One (algorithm, env) run of an experiment (all its seeds batched in one trainer)."""
+
+    algo: str
+    env: str
+
+    @property
+    def key(self) -> str:
+        """File stem of the pair's evaluation log: `<env with - for />__<algo>`."""
+        return f"{self.env.replace('/', '-')}__{self.algo}"
+
+    @property
+    def label(self) -> str:
+        return f"{self.algo}@{self.env}"
+
+
+@dataclass(frozen=True)
+class FanOutConfig:
+    """Where the pairs run.
+
+    Args:
+        workers: local mode: processes running pairs in parallel (1 = in this process).
+        address: None = local mode; "auto" = the cluster `credit cluster up` recorded (else
+            Ray's own discovery); "host:port" = that Ray head.
+        cpus_per_pair: Ray mode: CPUs each pair's task asks for (its torch threads are
+            `run.torch_threads`, 1 by default; ask for as many CPUs as it uses).
+        max_retries: Ray mode: times a pair is restarted after its worker process or node dies.
+        ship_code: Ray mode: upload this driver's packages to every node
+            (`cluster.repro.fanout_ray`).
+    """
+
+    workers: int = 2
+    address: str | None = None
+    cpus_per_pair: float = 1.0
+    max_retries: int = 3
+    ship_code: bool = True
+
+    def validate(self) -> None:
+        """Raise ValueError for a setting no run could use."""
+        if self.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {self.workers}")
+        if self.cpus_per_pair <= 0:
+            raise ValueError(f"--cpus-per-pair must be > 0, got {self.cpus_per_pair}")
+        if self.max_retries < 0:
+            raise ValueError(f"--max-retries must be >= 0, got {self.max_retries}")
+
+
+@dataclass(frozen=True)
+class PairEvent:
+    """What a pair's process tells the driver while it runs.
+
+    Args:
+        pair: the pair.
+        kind: "started" (a new attempt at the pair), "evaluated" or "finished" (the last
+            event of an attempt that returned its result).
+        attempt: "<host>:<pid>:<start time ns>" of the attempt, so that lines of an attempt
+            that died are told from the retry's.
+        text: "evaluated": one JSON line of the pair's evaluation log.
+        wall_s: "finished": seconds the attempt took.
+    """
+
+    pair: Pair
+    kind: str
+    attempt: str
+    text: str = ""
+    wall_s: float = 0.0
+
+
+class EventSink(Protocol):
+    """Where a pair's process puts its events: `sink.put(event)`, in order."""
+
+    def put(self, event: PairEvent) -> None: ...
+
+
+class Reporter:
+    """The pair function's side: `report(line)` per evaluation after `start()`."""
+
+    def __init__(self, sink: EventSink, pair: Pair):
+        self.sink, self.pair = sink, pair
+        self.attempt = f"{socket.gethostname()}:{os.getpid()}:{time.time_ns()}"
+
+    def start(self) -> None:
+        self.sink.put(PairEvent(self.pair, "started", self.attempt))
+
+    def __call__(self, line: str) -> None:
+        self.sink.put(PairEvent(self.pair, "evaluated", self.attempt, line))
+
+
+PairFn = Callable[..., Any]  # fn(algo, env, *args, report=Callable[[str], None]) -> result
+
+
+def run_pair(fn: PairFn, pair: Pair, args: tuple, sink: EventSink) -> Any:
+    """Run one pair in this process, reporting to `sink`; returns fn's result."""
+    report = Reporter(sink, pair)
+    report.start()
+    started = time.monotonic()
+    result = fn(pair.algo, pair.env, *args, report=report)
+    wall = time.monotonic() - started
+    sink.put(PairEvent(pair, "finished", report.attempt, wall_s=wall))
+    return result
+
+
+@dataclass(frozen=True)
+class StatusLine:
+    """The driver's status line over every pair (`cluster.core.Progress`).
+
+    Args:
+        total_steps: env steps of all pairs together (the bar's 100%).
+        key: field of the evaluation lines shown per pair, its median over seeds ("won").
+        name: what the line calls it ("win").
+    """
+
+    total_steps: int
+    key: str = "won"
+    name: str = "win"
+
+
+class Collector:
+    """The driver's side: writes each pair's evaluation log, logs its start and finish, and
+    keeps the status line (env steps done: each pair's latest evaluation)."""
+
+    def __init__(
+        self, pairs: Sequence[Pair], log_dir: Path | None, status: StatusLine | None = None
+    ):
+        self.log_dir, self.total, self.status = log_dir, len(pairs), status
+        self.attempt: dict[Pair, str] = {}
+        self.starts: dict[Pair, int] = {}
+        self.finished: set[Pair] = set()
+        self.latest: dict[Pair, dict] = {}  # each pair's latest evaluation line
+        self.bar = None
+        if status is not None:
+            from cluster.core import Progress
+
+            self.bar = Progress(status.total_steps)
+
+    def _say(self, msg: str, *args: Any) -> None:
+        if self.bar is not None and self.bar.tty:
+            sys.stderr.write("\r\x1b[K")  # the log line replaces the bar; the next update redraws
+        log.info(msg, *args)
+
+    def tick(self) -> None:
+        """Redraw the status line; the loops call it once per collection of events, so that
+        its rate is measured over a collection period, not between events of one batch."""
+        if self.bar is None:
+            return
+        key = self.status.key
+        shown = []
+        for pair, row in self.latest.items():
+            values = sorted(row.get(key) or [0.0])
+            shown.append(f"{pair.label} {values[len(values) // 2]:.2f}")
+        steps = sum(int(row.get("t_env", 0)) for row in self.latest.values())
+        pairs = f"{len(self.finished)}/{self.total} pairs done"
+        latest = f"; {self.status.name} " + ", ".join(shown) if shown else ""
+        self.bar.update(steps, pairs + latest)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+    def handle(self, event: PairEvent) -> None:
+        pair = event.pair
+        if event.kind == "started":
+            self.attempt[pair] = event.attempt
+            self.starts[pair] = self.starts.get(pair, 0) + 1
+            if self.log_dir is not None:  # a retry starts its log afresh
+                (self.log_dir / f"{pair.key}.jsonl").write_text("")
+            self.latest.pop(pair, None)
+            host, pid, _ = event.attempt.rsplit(":", 2)
+            again = self.starts[pair] > 1
+            self._say(
+                "pair %s %s on %s (pid %s)%s",
+                pair.label,
+                "restarted" if again else "started",
+                host,
+                pid,
+                f", attempt {self.starts[pair]}: the previous one was lost" if again else "",
+            )
+        elif event.attempt != self.attempt.get(pair):
+            return  # a lost attempt's late event
+        elif event.kind == "evaluated":
+            if self.log_dir is not None:
+                with open(self.log_dir / f"{pair.key}.jsonl", "a") as f:
+                    f.write(event.text.rstrip("\n") + "\n")
+            if self.bar is not None:
+                self.latest[pair] = json.loads(event.text)
+        elif event.kind == "finished":
+            self.finished.add(pair)
+            self._say(
+                "pair %s finished in %.0f s (%d/%d pairs done)",
+                pair.label,
+                event.wall_s,
+                len(self.finished),
+                self.total,
+            )
+
+
+def run_pairs(
+    fn: PairFn,
+    pairs: Sequence[Pair],
+    args: tuple,
+    cfg: FanOutConfig,
+    log_dir: Path | None = None,
+    on_result: Callable[[Pair, Any], None] | None = None,
+    status: StatusLine | None = None,
+) -> list:
+    """Run `fn(pair.algo, pair.env, *args, report=...)` for every pair where `cfg` says.
+
+    Args:
+        fn: a module-level function (it is pickled by reference to reach other processes).
+        pairs: the pairs, in the order of the returned results.
+        args: the arguments every pair gets after (algo, env).
+        cfg: where to run them.
+        log_dir: folder for the evaluation logs, None for none.
+        on_result: called in the driver with each pair's result as it arrives.
+        status: the status line to keep on the terminal, None for none.
+
+    Returns:
+        fn's results, one per pair in `pairs` order.
+
+    Raises ClusterError when the cluster cannot be reached or a pair is lost more than
+    `cfg.max_retries` times; an exception of `fn` itself is raised as it is.
+    """
+    collector = Collector(pairs, log_dir, status)
+    arrived = on_result or (lambda pair, result: None)
+    try:
+        if cfg.address:
+            from cluster.repro.fanout_ray import run_ray  # imports ray
+
+            return run_ray(fn, pairs, args, cfg, collector, arrived)
+        if cfg.workers <= 1:
+            results = []
+            for p in pairs:
+                results.append(run_pair(fn, p, args, _Direct(collector)))
+                arrived(p, results[-1])
+            return results
+        return _run_pool(fn, pairs, args, cfg.workers, collector, arrived)
+    finally:
+        collector.close()
+
+
+class _Direct:
+    """A sink handing events straight to the collector (pairs run in the driver)."""
+
+    def __init__(self, collector: Collector):
+        self.collector = collector
+
+    def put(self, event: PairEvent) -> None:
+        self.collector.handle(event)
+        self.collector.tick()
+
+
+_pool_events: Any = None  # the event queue of a local pool's worker process
+
+
+def _pool_init(events: Any) -> None:
+    global _pool_events
+    _pool_events = events
+
+
+def _pool_pair(fn: PairFn, pair: Pair, args: tuple) -> Any:
+    return run_pair(fn, pair, args, _pool_events)
+
+
+def _drain_queue(events: Any, collector: Collector, block_s: float = 0.0) -> None:
+    """Hand every queued event to the collector, waiting up to `block_s` for each."""
+    while True:
+        try:
+            collector.handle(events.get(timeout=block_s) if block_s else events.get_nowait())
+        except queue.Empty:
+            collector.tick()
+            return
+
+
+def _run_pool(
+    fn: PairFn,
+    pairs: Sequence[Pair],
+    args: tuple,
+    workers: int,
+    collector: Collector,
+    arrived: Callable[[Pair, Any], None],
+) -> list:
+    """Today's local mode: a process pool of `workers`; events come back on a queue the
+    workers inherit."""
+    events = multiprocessing.get_context().Queue()
+    with ProcessPoolExecutor(workers, initializer=_pool_init, initargs=(events,)) as pool:
+        futures = {pool.submit(_pool_pair, fn, p, args): p for p in pairs}
+        pending = set(futures)
+        while pending:
+            ready, pending = wait(pending, timeout=POLL_S, return_when=FIRST_COMPLETED)
+            _drain_queue(events, collector)
+            for f in ready:
+                arrived(futures[f], f.result())  # raises the pair's exception here
+    # A worker puts its last events before it returns, but the queue's feeder thread may
+    # deliver them after the result: wait for every pair's "finished".
+    while len(collector.finished) < len(pairs):
+        before = len(collector.finished)
+        _drain_queue(events, collector, block_s=10.0)
+        if len(collector.finished) == before:
+            log.warning("the local workers' last events did not arrive; logs may be short")
+            break
+    return [f.result() for f in futures]

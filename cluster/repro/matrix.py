@@ -1,0 +1,144 @@
+"""Seed Fig. 5.3 on both matrix games: every algorithm, N seeds trained side by side.
+
+Each (algorithm, game) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a
+small process pool or as Ray tasks on a cluster (`cluster.repro.fanout`). Writes
+evals/<game>__<algo>.jsonl as each pair evaluates, then summary.json, curves.json and
+matrix_<game>.png.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from actors.envs.registry import make_env
+from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+
+log = logging.getLogger(__name__)
+
+GAMES = ("matrix/two_step", "matrix/four_game")
+ALGOS = ("iql", "vdn", "qmix", "qmix_ns", "rdn")
+
+
+@dataclass(frozen=True)
+class Curve:
+    """Test return of every seed at every evaluation: t_env [K], returns [K, seeds]; for RDN,
+    what its critic learned (cluster.inspect.rdn_diagnostics), one entry per seed."""
+
+    algo: str
+    game: str
+    t_env: list[int]
+    returns: list[list[float]]
+    wall_s: float
+    rdn_diagnostics: list[dict] | None = None
+
+
+def run_pair(
+    algo: str,
+    game: str,
+    seeds: int,
+    overrides: list[str],
+    threads: int,
+    report: Callable[[str], None] | None = None,
+) -> Curve:
+    """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer; `report` gets one
+    JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s})."""
+    import torch
+
+    from cluster.config.train import load_train_config
+    from cluster.launch.local import LocalTrainer
+
+    torch.set_num_threads(threads)
+    cfg = load_train_config(algo, game, [], overrides)
+    trainer = LocalTrainer(cfg, n_ensemble=seeds)
+    t_env: list[int] = []
+    returns: list[list[float]] = []
+
+    started = time.monotonic()
+
+    def on_eval(records) -> None:
+        t_env.append(records[0].t_env)
+        returns.append([r.test_return_mean for r in records])
+        if report is not None:
+            wall = round(time.monotonic() - started, 1)
+            line = {"env": game, "algo": algo, "t_env": t_env[-1], "returns": returns[-1]}
+            report(json.dumps({**line, "wall_s": wall}))
+
+    trainer.train(on_eval=on_eval)
+    if not t_env or t_env[-1] != trainer.core.t_env:
+        on_eval(trainer.core.evaluate())
+    diagnostics = None
+    if algo == "rdn":
+        from cluster.inspect.rdn_diagnostics import diagnose
+
+        diagnostics = diagnose(trainer.core.learner, game, cfg.env.args)
+    return Curve(algo, game, t_env, returns, time.monotonic() - started, diagnostics)
+
+
+def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
+    """{algo: {game: {final_return_median, _q25, _q75, optimal_runs, runs}}}."""
+    out: dict = {}
+    for c in curves:
+        final = np.asarray(c.returns[-1])
+        out.setdefault(c.algo, {})[c.game.split("/", 1)[1]] = {
+            "final_return_median": float(np.median(final)),
+            "final_return_q25": float(np.percentile(final, 25)),
+            "final_return_q75": float(np.percentile(final, 75)),
+            "optimal_runs": int(np.sum(final >= optimum[c.game] - 1e-3)),
+            "runs": len(final),
+            "final_returns": [float(x) for x in final],
+            "wall_s": round(c.wall_s, 1),
+        }
+    return out
+
+
+def plot(curves: list[Curve], game: str, path: Path) -> None:
+    """Median test return with the 25-75 percentile band, one line per algorithm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for c in (c for c in curves if c.game == game):
+        r = np.asarray(c.returns)
+        t = np.asarray(c.t_env)
+        med = np.median(r, axis=1)
+        ax.plot(t, med, label=c.algo)
+        ax.fill_between(t, np.percentile(r, 25, axis=1), np.percentile(r, 75, axis=1), alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("test return")
+    n = len(curves[0].returns[0]) if curves else 0
+    ax.set_title(f"{game}: median of {n} seeds, 25-75 percentile band")
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(
+    algos: list[str],
+    games: list[str],
+    seeds: int,
+    overrides: list[str],
+    fan: FanOutConfig,
+    log_dir: Path | None = None,
+    total_steps: int = 0,
+) -> list[Curve]:
+    """Every (algo, game) pair where `fan` says; curves in (game, algo) order, evaluations in
+    log_dir/<game>__<algo>.jsonl as they happen. With `total_steps` (every pair's t_max
+    together), a status line shows the env steps done and each pair's latest median return."""
+    pairs = [Pair(a, g) for g in games for a in algos]
+    status = StatusLine(total_steps, "returns", "return") if total_steps else None
+    return run_pairs(run_pair, pairs, (seeds, overrides, 1), fan, log_dir, None, status)
+
+
+def optimum_of(game: str, env_args: dict) -> float:
+    return make_env(game, seed=0, **env_args).optimal_return

@@ -1,0 +1,175 @@
+"""The seed's redundancy experiment (Section 5.4.2, Table 5.1, Figs. 5.6-5.9): RDN, VDN, QMIX,
+QMIX-nostate and IQL on bane_vs_bane and its variants with fewer (or more) allied zerglings,
+the enemy always 20 zerglings and 4 banelings.
+
+Runs, logs and the per-map plots are `cluster.repro.curves`' (`credit repro redundancy`); this
+module names the maps and algorithms, turns `--zerglings 0,5,...` into generated maps
+(`skirmish/bane_z<N>`), and draws the seed's figures over all maps at once:
+
+* redundancy_median.png (Fig. 5.6): per map, the median win rate over seeds with the 25-75%
+  band, one line per algorithm;
+* redundancy_variance.png (Fig. 5.7): the variance of the win rate across seeds;
+* redundancy_p75.png, redundancy_p25.png (Figs. 5.8, 5.9): the 75th and 25th percentiles;
+* redundancy_final.png (not in the seed): the final win rate (each seed's mean over its last
+  10 evaluations; median and 25-75% over seeds) against the number of allied zerglings.
+
+Maps are ordered from the most redundant zerglings to the fewest, as in the seed's figures.
+`summary.json` gets a "redundancy" entry with every number these figures draw.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from actors.envs.skirmish.spec import BANE_VARIANT_MAX, builtin_map
+from cluster.errors import UsageError
+from cluster.repro import smac as repro_smac
+from cluster.repro.curves import LAST, Curve
+
+ENVS = (
+    "skirmish/bane_vs_bane",
+    "skirmish/bane_med",
+    "skirmish/bane_small",
+    "skirmish/bane_no_z",
+)
+ALGOS = ("rdn", "vdn", "qmix", "qmix_ns", "iql")
+PLOT_PREFIX = "redundancy"
+DIAGNOSTICS = repro_smac.DIAGNOSTICS  # the per-map plots: Q scale and TD losses
+STATS = {  # file suffix -> (panel y label, statistic over seeds at each evaluation)
+    "median": ("median win rate (25-75% band)", lambda w: np.median(w, axis=1)),
+    "variance": ("variance of the win rate across seeds", lambda w: np.var(w, axis=1)),
+    "p75": ("75th percentile win rate", lambda w: np.percentile(w, 75, axis=1)),
+    "p25": ("25th percentile win rate", lambda w: np.percentile(w, 25, axis=1)),
+}
+
+
+def zergling_envs(spec: str) -> list[str]:
+    """`--zerglings 0,5,10` -> ["skirmish/bane_z0", "skirmish/bane_z5", "skirmish/bane_z10"]."""
+    out = []
+    for n in (x.strip() for x in spec.split(",")):
+        if not n:
+            continue
+        if not n.isdigit() or int(n) > BANE_VARIANT_MAX:
+            raise UsageError(
+                f"--zerglings takes whole numbers 0..{BANE_VARIANT_MAX} separated by commas, "
+                f"got {n!r}"
+            )
+        out.append(f"skirmish/bane_z{int(n)}")
+    return out
+
+
+def zerglings_of(env: str) -> int:
+    """Allied zerglings of a bane map (`skirmish/<name>`)."""
+    spec = builtin_map(env.split("/", 1)[1])
+    return sum(g.count for g in spec.allies if g.type == "zergling")
+
+
+def ordered(envs: list[str]) -> list[str]:
+    """Most allied zerglings first (the seed's left-to-right order); ties keep their order."""
+    return sorted(envs, key=lambda g: -zerglings_of(g))
+
+
+def curve_stats(c: Curve) -> dict:
+    """The numbers behind Figs. 5.6-5.9 for one (env, algo): each statistic at each
+    evaluation."""
+    w = np.asarray(c.won, dtype=float)
+    out = {"t_env": list(c.t_env), "seeds": int(w.shape[1])}
+    for key, (_, stat) in STATS.items():
+        out[key] = [round(float(v), 4) for v in stat(w)]
+    return out
+
+
+def final_stats(curves: list[Curve], envs: list[str]) -> dict:
+    """Per algo, against the number of zerglings: each seed's mean win rate over its last
+    LAST evaluations, and their median and 25th / 75th percentiles over seeds."""
+    out: dict = {}
+    for env in ordered(envs):
+        for c in curves:
+            if c.env != env:
+                continue
+            per_seed = np.asarray(c.won, dtype=float)[-LAST:].mean(axis=0)
+            cell = out.setdefault(
+                c.algo, {"env": [], "zerglings": [], "median": [], "p25": [], "p75": []}
+            )
+            cell["env"].append(env)
+            cell["zerglings"].append(zerglings_of(env))
+            cell["median"].append(round(float(np.median(per_seed)), 4))
+            cell["p25"].append(round(float(np.percentile(per_seed, 25)), 4))
+            cell["p75"].append(round(float(np.percentile(per_seed, 75)), 4))
+            cell.setdefault("per_seed", []).append([round(float(v), 4) for v in per_seed])
+    return out
+
+
+def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict) -> list[str]:
+    """Draw the five figures into `out` and add their numbers to `summary["redundancy"]`;
+    returns the file names."""
+    envs = ordered([g for g in envs if any(c.env == g for c in curves)])
+    summary["redundancy"] = {
+        "zerglings": {g: zerglings_of(g) for g in envs},
+        "curves": {g: {c.algo: curve_stats(c) for c in curves if c.env == g} for g in envs},
+        "final": final_stats(curves, envs),
+        "last_evaluations": LAST,
+    }
+    files = []
+    for key, (label, _) in STATS.items():
+        files.append(f"{PLOT_PREFIX}_{key}.png")
+        _plot_grid(summary["redundancy"]["curves"], envs, key, label, out / files[-1])
+    files.append(f"{PLOT_PREFIX}_final.png")
+    _plot_final(summary["redundancy"]["final"], out / files[-1])
+    return files
+
+
+def _plot_grid(stats: dict, envs: list[str], key: str, label: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 3.6), squeeze=False)
+    colors: dict[str, str] = {}
+    for ax, env in zip(axes[0], envs, strict=True):
+        for algo, s in stats[env].items():
+            kw = {"color": colors[algo]} if algo in colors else {}
+            (line,) = ax.plot(s["t_env"], s[key], label=algo, **kw)
+            colors[algo] = line.get_color()
+            if key == "median":
+                ax.fill_between(s["t_env"], s["p25"], s["p75"], alpha=0.2, color=colors[algo])
+        seeds = "/".join(str(n) for n in sorted({s["seeds"] for s in stats[env].values()}))
+        ax.set_title(f"{env.split('/', 1)[1]} ({zerglings_of(env)} zerglings, {seeds} seeds)")
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+        if key != "variance":
+            ax.set_ylim(-0.02, 1.02)
+    axes[0][0].set_ylabel(label)
+    axes[0][0].legend(loc="upper left", fontsize=8)
+    fig.suptitle(f"{label}, most redundant zerglings (left) to fewest (right)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_final(final: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for algo, s in final.items():
+        x = np.asarray(s["zerglings"], dtype=float)
+        order = np.argsort(x, kind="stable")
+        med = np.asarray(s["median"])[order]
+        lo = med - np.asarray(s["p25"])[order]
+        hi = np.asarray(s["p75"])[order] - med
+        ax.errorbar(x[order], med, yerr=[lo, hi], marker="o", capsize=3, label=algo)
+    ax.set_xlabel("allied zerglings (the enemy: 20 zerglings + 4 banelings)")
+    ax.set_ylabel(f"final win rate (last {LAST} evaluations)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("final win rate: median over seeds, bars 25-75%")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
