@@ -26,7 +26,7 @@ from cluster.config.train import config_root, default_files, load_train_config
 from learner.registry import ALGOS
 
 ROOT = Path(__file__).resolve().parents[2]
-CONFIGS = ROOT / "cluster" / "configs"
+CONFIGS = ROOT / "cluster" / "config" / "layers"
 DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 
 # The seed's values (5.3.3 / 5.3.4) for EM-CAC on a SMAC-style map, as the shipped layers
@@ -69,14 +69,14 @@ def shipped_layers() -> list[Path]:
 
 def test_every_shipped_layer_matches_a_package_data_pattern():
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    patterns = meta["tool"]["setuptools"]["package-data"]["cluster"]
+    patterns = meta["tool"]["setuptools"]["package-data"]["cluster.config"]
     layers = shipped_layers()
     assert layers, f"no YAML under {CONFIGS}"
     for path in layers:
-        rel = path.relative_to(ROOT / "cluster").as_posix()
+        rel = path.relative_to(ROOT / "cluster" / "config").as_posix()
         # setuptools globs each pattern from the package folder; `*` does not cross a `/`.
         assert any(fnmatch.fnmatch(rel, p) and rel.count("/") == p.count("/") for p in patterns), (
-            f"{rel} is not package data of `cluster` (patterns {patterns})"
+            f"{rel} is not package data of `cluster.config` (patterns {patterns})"
         )
 
 
@@ -186,7 +186,9 @@ def test_a_wheel_installed_outside_the_checkout_trains_with_the_shipped_layers(t
     assert printed.returncode == 0, printed.stderr
     assert_seed_values(yaml.safe_load(printed.stdout))
     layers = [line.split()[-1] for line in printed.stdout.splitlines() if line.startswith("#   /")]
-    assert [Path(p).relative_to(site / "cluster" / "configs").as_posix() for p in layers] == [
+    assert [
+        Path(p).relative_to(site / "cluster" / "config" / "layers").as_posix() for p in layers
+    ] == [
         "envs/skirmish.yaml",
         "algos/emcac.yaml",
     ]
@@ -202,7 +204,7 @@ def test_a_wheel_installed_outside_the_checkout_trains_with_the_shipped_layers(t
     assert written["run"]["t_max"] == 1
 
     # An install that lost a layer stops with exit code 2, naming the missing file.
-    (site / "cluster" / "configs" / "algos" / "emcac.yaml").unlink()
+    (site / "cluster" / "config" / "layers" / "algos" / "emcac.yaml").unlink()
     broken = run_credit(
         venv, elsewhere, "train", "--algo", "emcac", "--env", "skirmish/3s5z", "--print-config"
     )
