@@ -9,8 +9,8 @@ buffer service over TCP, `cluster.launch.ray_sides.ServiceData`). `LocalTrainer`
 
 Behaviour of the two modes (the one place it is written down)
 --------------------------------------------------------------
-* Tables and their limits: both modes use the tables of `run_config.data_plan` with the same
-  `buffer_service.tables.Table` code, sample-to-insert limiter included, sampling with or
+* Tables and their limits: both modes use the tables of `cluster.config.plan.data_plan` with
+  the same `buffer_service.tables.Table` code, sample-to-insert limiter included, sampling with or
   without replacement as `replay.with_replacement` says.
 * Pacing (`replay.updates_per_episode`, the policy-gradient tables' reuse): the learner takes
   its batches only when the tables' limiters allow a sample, in both modes. Local mode acts

@@ -7,7 +7,7 @@ very code the driver runs, whatever they have installed; they still need the dep
 (torch, numpy, ray of the driver's version). With `ship_code=False` the nodes import the
 `credit` installed in their own environment.
 
-Imports Ray: import this module only through `repro_fanout.run_pairs` (which sets Ray's
+Imports Ray: import this module only through `cluster.repro.fanout.run_pairs` (which sets Ray's
 environment first, `cluster.launch.ray_cluster.apply_ray_environment`).
 """
 
@@ -84,7 +84,7 @@ def run_ray(
     arrived: Callable[[Pair, Any], None],
 ) -> list:
     """Every pair as a Ray task on the cluster at `cfg.address`; results in `pairs` order,
-    each handed to `arrived` as it comes (see `repro_fanout.run_pairs`)."""
+    each handed to `arrived` as it comes (see `cluster.repro.fanout.run_pairs`)."""
     ray_cluster.apply_ray_environment()  # before `import ray`: it reads them at import
     import ray
     from ray.exceptions import RayError, RayTaskError
