@@ -16,7 +16,7 @@ from typing import Any
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
 from actors.envs.skirmish import builtin_map, builtin_map_names, make_skirmish, make_skirmish_vec
-from actors.envs.skirmish.spec import BANE_VARIANT
+from actors.envs.skirmish.maps import BANE_VARIANT
 from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
 
 

@@ -168,7 +168,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from buffer_service.server import run
+    from buffer_service.runner import run
     from buffer_service.storage import StorageError
 
     try:

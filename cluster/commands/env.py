@@ -8,7 +8,7 @@ import logging
 
 from actors.envs.base import EnvError
 from actors.envs.registry import env_ids, env_info
-from actors.envs.skirmish.spec import BANE_VARIANT_MAX
+from actors.envs.skirmish.maps import BANE_VARIANT_MAX
 from cluster.commands import add_command
 
 log = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from actors.envs.skirmish.spec import BANE_VARIANT_MAX, builtin_map
+from actors.envs.skirmish.maps import BANE_VARIANT_MAX, builtin_map
 from cluster.errors import UsageError
 from cluster.repro import smac as repro_smac
 from cluster.repro.curves import LAST, Curve

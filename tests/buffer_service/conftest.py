@@ -8,7 +8,7 @@ import pytest
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig, RateLimiterConfig, TableConfig
 from buffer_service.episode import Episode, EpisodeSchema
-from buffer_service.server import start_server_thread
+from buffer_service.runner import start_server_thread
 
 SCHEMA = EpisodeSchema(n_agents=3, obs_dim=5, state_dim=7, n_actions=4, max_t=10)
 

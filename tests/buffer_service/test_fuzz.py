@@ -15,7 +15,7 @@ import numpy as np
 from buffer_service import codec
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
-from buffer_service.server import start_server_thread
+from buffer_service.runner import start_server_thread
 from tests.buffer_service.conftest import SCHEMA, make_episode
 
 TOKEN = "fuzz-token"

@@ -12,7 +12,8 @@ import pytest
 from buffer_service.client import AuthError, BufferClient, BufferServiceError, RateLimitedError
 from buffer_service.config import BufferConfig
 from buffer_service.episode import EpisodeSchema
-from buffer_service.server import BufferServer, start_server_thread
+from buffer_service.runner import start_server_thread
+from buffer_service.server import BufferServer
 from tests.buffer_service.conftest import SCHEMA, make_episode, table
 
 

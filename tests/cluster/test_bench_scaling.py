@@ -6,7 +6,7 @@ import pytest
 
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.config import BufferConfig, RateLimiterConfig, TableConfig
-from buffer_service.server import start_server_thread
+from buffer_service.runner import start_server_thread
 from cluster.bench import scaling_stats as st
 from cluster.bench.scaling import limiter_off
 from cluster.metrics.loop_stats import LoopStats

@@ -13,13 +13,10 @@ from typing import Any
 
 from actors.envs.skirmish.config import SkirmishConfig, make_config
 from actors.envs.skirmish.env import SkirmishEnv, SkirmishVecEnv
-from actors.envs.skirmish.smac_env import MultiAgentEnv, StarCraft2Env
-from actors.envs.skirmish.spec import (
-    MapSpec,
-    builtin_map,
-    builtin_map_names,
-    load_map_file,
-)
+from actors.envs.skirmish.maps import builtin_map, builtin_map_names, load_map_file
+from actors.envs.skirmish.multiagentenv import MultiAgentEnv
+from actors.envs.skirmish.smac_env import StarCraft2Env
+from actors.envs.skirmish.spec import MapSpec
 
 __all__ = [
     "MapSpec",

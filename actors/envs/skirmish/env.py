@@ -19,9 +19,9 @@ import numpy as np
 
 from actors.envs.base import EnvError, EnvInfo
 from actors.envs.skirmish.config import SkirmishConfig
-from actors.envs.skirmish.kernels import outcome, set_orders
 from actors.envs.skirmish.sim import Battle, Statics
 from actors.envs.skirmish.spec import MapSpec
+from actors.envs.skirmish.step_kernels import outcome, set_orders
 from actors.envs.skirmish.variants import Variant
 from actors.envs.skirmish.views import Layout, avail_actions, global_state, observations
 

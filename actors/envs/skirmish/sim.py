@@ -18,15 +18,10 @@ from types import SimpleNamespace
 import numpy as np
 
 from actors.envs.skirmish import kernels as K
+from actors.envs.skirmish import step_kernels
 from actors.envs.skirmish.config import SkirmishConfig
 from actors.envs.skirmish.scenario import draw_points, draw_teams, place
-from actors.envs.skirmish.spec import (
-    KINDS,
-    LOOPS_PER_SECOND,
-    MapSpec,
-    ordered_units,
-    unit_types,
-)
+from actors.envs.skirmish.spec import KINDS, LOOPS_PER_SECOND, MapSpec, ordered_units, unit_types
 
 IDLE, MOVE, ATTACK = K.IDLE, K.MOVE, K.ATTACK
 ARRIVE_RADIUS = 3.0  # an enemy this close to the agents' spawn has arrived and starts hunting
@@ -301,8 +296,9 @@ class Battle:
         for r, m in enumerate(envs.tolist()):
             draws[r] = rngs[m].random(4 + 2 * st.U)
         ro = self.rosters
-        K.reset_battles(envs, draws, jitter, self.rid, ro.start_pos, ro.goal, st.team, ro.uf,
-                        ro.energy_start, self.f, self.g, self.alive, self.way)  # fmt: skip
+        step_kernels.reset_battles(envs, draws, jitter, self.rid, ro.start_pos, ro.goal, st.team,
+                                   ro.uf, ro.energy_start, self.f, self.g, self.alive,
+                                   self.way)  # fmt: skip
 
     def step(self, active: np.ndarray) -> np.ndarray:
         """Advance the `active` [M] battles by one agent step (all sub-steps).

@@ -45,7 +45,9 @@ import numpy as np
 from actors.envs.base import EnvError
 from actors.envs.skirmish.config import SkirmishConfig
 from actors.envs.skirmish.env import SkirmishVecEnv
-from actors.envs.skirmish.spec import MapSpec, builtin_map, load_map_file
+from actors.envs.skirmish.maps import builtin_map, load_map_file
+from actors.envs.skirmish.multiagentenv import MultiAgentEnv
+from actors.envs.skirmish.spec import MapSpec
 
 log = logging.getLogger(__name__)
 DIFFICULTIES = ("1", "2", "3", "4", "5", "6", "7", "8", "9", "A")
@@ -61,65 +63,6 @@ CONFIG_KEYS = (
     "reward_only_positive", "reward_negative_scale", "reward_death_value", "reward_win",
     "reward_defeat", "reward_scale", "reward_scale_rate", "move_amount",
 )  # fmt: skip
-
-
-class MultiAgentEnv:
-    """SMAC's `smac.env.MultiAgentEnv` base class: the methods PyMARL-family runners call."""
-
-    n_agents: int
-    episode_limit: int
-
-    def step(self, actions):
-        """Returns reward, terminated, info."""
-        raise NotImplementedError
-
-    def get_obs(self):
-        raise NotImplementedError
-
-    def get_obs_agent(self, agent_id):
-        raise NotImplementedError
-
-    def get_obs_size(self):
-        raise NotImplementedError
-
-    def get_state(self):
-        raise NotImplementedError
-
-    def get_state_size(self):
-        raise NotImplementedError
-
-    def get_avail_actions(self):
-        raise NotImplementedError
-
-    def get_avail_agent_actions(self, agent_id):
-        raise NotImplementedError
-
-    def get_total_actions(self):
-        raise NotImplementedError
-
-    def reset(self):
-        raise NotImplementedError
-
-    def render(self):
-        raise NotImplementedError
-
-    def close(self):
-        raise NotImplementedError
-
-    def seed(self):
-        raise NotImplementedError
-
-    def save_replay(self):
-        raise NotImplementedError
-
-    def get_env_info(self) -> dict[str, Any]:
-        return {
-            "state_shape": self.get_state_size(),
-            "obs_shape": self.get_obs_size(),
-            "n_actions": self.get_total_actions(),
-            "n_agents": self.n_agents,
-            "episode_limit": self.episode_limit,
-        }
 
 
 def resolve_map(map_name: str | MapSpec) -> MapSpec:

@@ -7,7 +7,8 @@ import pytest
 
 from actors.envs.base import EnvError
 from actors.envs.registry import env_info, get_spec, make_vec_env
-from actors.envs.skirmish.spec import bane_variant, builtin_map, ordered_units
+from actors.envs.skirmish.maps import bane_variant, builtin_map
+from actors.envs.skirmish.spec import ordered_units
 
 
 @pytest.mark.parametrize(
