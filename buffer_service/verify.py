@@ -14,8 +14,9 @@ from typing import Any
 from buffer_service import codec, records
 from buffer_service.config import BufferConfig, TableConfig, default_tables
 from buffer_service.records import EPISODE, FILE, INSERT, Scan
+from buffer_service.snapshots import snapshot_problem
 from buffer_service.state import BufferState
-from buffer_service.storage import NAME, TEMP, Storage, StorageError, snapshot_problem
+from buffer_service.storage import NAME, TEMP, Storage, StorageError
 
 
 def _episodes(scan: Scan) -> int:

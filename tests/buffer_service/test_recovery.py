@@ -17,8 +17,9 @@ from buffer_service import codec, records
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
 from buffer_service.runner import start_server_thread
+from buffer_service.snapshots import SnapshotJob
 from buffer_service.state import BufferState
-from buffer_service.storage import SnapshotJob, Storage, StorageError
+from buffer_service.storage import Storage, StorageError
 from buffer_service.verify import verify
 from tests.buffer_service.conftest import SCHEMA, make_episode, table
 
