@@ -40,20 +40,20 @@ def lambda_returns(
         [..., T]; padded steps hold 0.
     """
     t_len = reward.shape[-1]
-    out = torch.zeros_like(reward)
-    # At a padded step the "next return" is the bootstrap value itself, so the last real step
-    # of a cut episode reduces to r + γ V_{t+1}.
-    g_next = values[..., t_len]
-    for t in range(t_len - 1, -1, -1):
-        m = mask[..., t]
-        not_term = 1.0 - terminated[..., t]
-        v_next = values[..., t + 1]
-        nxt_is_real = mask[..., t + 1] if t + 1 < t_len else torch.zeros_like(m)
-        blend = nxt_is_real * ((1.0 - lam) * v_next + lam * g_next) + (1.0 - nxt_is_real) * v_next
-        g = reward[..., t] + gamma * not_term * blend
-        out[..., t] = g * m
-        g_next = torch.where(m > 0, g, g_next)
-    return out
+    if t_len == 0:
+        return torch.zeros_like(reward)
+    v_next = values[..., 1:]
+    # nxt_real[t]: step t+1 is a real step. Where it is not (the last real step, a cut
+    # episode's included), G_t = r_t + γ (1 - term_t) V_{t+1}; otherwise the blend. So
+    # G_t = a_t + b_t G_{t+1}, with the coefficients computed for every step at once.
+    nxt_real = torch.cat([mask[..., 1:], torch.zeros_like(mask[..., :1])], dim=-1)
+    discount = gamma * (1.0 - terminated)
+    a = reward + discount * v_next * (1.0 - lam * nxt_real)
+    b = discount * lam * nxt_real
+    returns = [a[..., t_len - 1]]
+    for t in range(t_len - 2, -1, -1):
+        returns.append(torch.addcmul(a[..., t], b[..., t], returns[-1]))
+    return torch.stack(returns[::-1], dim=-1) * mask
 
 
 def q_lambda_targets(

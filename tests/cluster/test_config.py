@@ -63,15 +63,28 @@ def test_broken_yaml_names_file_and_line(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("algo", "env", "td_lambda"),
+    ("algo", "env", "td_lambda", "recurrent"),
     [
-        ("rdn", "skirmish/3m", 0.8),  # envs/skirmish.rdn.yaml
-        ("rdn", "smac/3m", 0.8),  # envs/smac.rdn.yaml
-        ("rdn", "matrix/four_game", 0.0),  # no matrix.rdn.yaml: the seed's one-step critic
-        ("vdn", "skirmish/3m", 0.0),  # another algorithm's layer does not leak
+        ("rdn", "skirmish/3m", 0.8, True),  # envs/skirmish.rdn.yaml
+        ("rdn", "smac/3m", 0.8, True),  # envs/smac.rdn.yaml
+        ("rdn", "matrix/four_game", 0.0, True),  # no matrix.rdn.yaml: the seed's critic
+        ("qmix", "skirmish/3m", 0.6, False),  # envs/skirmish.qmix.yaml
+        ("qmix_ns", "smac/3m", 0.6, False),  # envs/smac.qmix_ns.yaml
+        ("qmix", "matrix/four_game", 0.0, True),
+        ("vdn", "skirmish/3m", 0.0, True),  # another algorithm's layer does not leak
+        ("iql", "smac/3m", 0.0, True),
     ],
 )
-def test_per_algorithm_env_layer_applies_to_that_algorithm_only(algo, env, td_lambda):
+def test_per_algorithm_env_layer_applies_to_that_algorithm_only(algo, env, td_lambda, recurrent):
     cfg = load_train_config(algo, env, [], [])
     assert cfg.algo.td_lambda == td_lambda
+    assert cfg.algo.agent.recurrent is recurrent
     assert load_train_config(algo, env, [], ["algo.td_lambda=0.3"]).algo.td_lambda == 0.3
+
+
+@pytest.mark.parametrize("env", ["skirmish/3m", "smac/3m"])
+def test_rdn_ships_counterfactual_targets_and_the_seed_recipe_is_two_keys_away(env):
+    assert load_train_config("rdn", env, [], []).algo.agent_targets == "counterfactual"
+    seed = load_train_config("rdn", env, [], ["algo.agent_targets=taken", "algo.td_lambda=0"]).algo
+    assert (seed.agent_targets, seed.td_lambda) == ("taken", 0.0)
+    assert load_train_config("rdn", "matrix/four_game", [], []).algo.agent_targets == "taken"

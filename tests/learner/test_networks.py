@@ -49,6 +49,24 @@ def test_qmixer_is_monotonic_in_every_agent_q():
     assert torch.all(grad >= 0)
 
 
+def test_qmixer_computes_the_qmix_formula_row_by_row():
+    """Q_tot = elu(q . |W1(s)| + b1(s)) . |W2(s)| + V(s), one row at a time with plain
+    matrix products, for each member's own hypernetworks."""
+    torch.manual_seed(0)
+    mixer = QMixer(2, n_agents=3, cond_dim=6, embed=4, hyper_hidden=5)
+    qs, cond = torch.randn(2, 7, 3), torch.randn(2, 7, 6)
+    out = mixer(qs, cond)
+    for e in range(2):
+        for m in range(7):
+            s = cond[e : e + 1, m : m + 1]
+            w1 = mixer.hyper_w1(s.expand(2, 1, 6))[e, 0].abs().view(3, 4)
+            b1 = mixer.hyper_b1(s.expand(2, 1, 6))[e, 0]
+            w2 = mixer.hyper_w2(s.expand(2, 1, 6))[e, 0].abs()
+            v = mixer.value(s.expand(2, 1, 6))[e, 0]
+            expected = torch.nn.functional.elu(qs[e, m] @ w1 + b1) @ w2 + v
+            torch.testing.assert_close(out[e, m], expected)
+
+
 def test_clip_grad_norm_per_member_clips_each_member_by_its_own_norm():
     p = torch.nn.Parameter(torch.zeros(2, 3))
     p.grad = torch.tensor([[3.0, 4.0, 0.0], [0.3, 0.4, 0.0]])  # norms 5 and 0.5

@@ -69,3 +69,36 @@ def test_q_lambda_targets_zero_is_one_step_td_and_one_is_the_return():
     torch.testing.assert_close(
         q_lambda_targets(r, term, mask, nxt, G, 0.5), torch.tensor([[g0, g1, 3.0]])
     )
+
+
+def _lambda_returns_by_definition(reward, terminated, mask, values, gamma, lam):
+    """The recursion of the docstring, one episode and one step at a time."""
+    out = torch.zeros_like(reward)
+    flat = [x.reshape(-1, x.shape[-1]) for x in (reward, terminated, mask, values)]
+    res = out.view(-1, reward.shape[-1])
+    for i, (r, term, m, v) in enumerate(zip(*flat, strict=True)):
+        n = int(m.sum())
+        g = 0.0
+        for t in range(n - 1, -1, -1):
+            last = t == n - 1
+            blend = v[t + 1] if last else (1 - lam) * v[t + 1] + lam * g
+            g = r[t] + gamma * (1 - term[t]) * blend
+            res[i, t] = g
+    return out
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.6, 0.8, 1.0])
+def test_lambda_returns_match_the_definition_on_random_padded_batches(lam):
+    gen = torch.Generator().manual_seed(0)
+    e, b, t = 2, 5, 9
+    lengths = torch.randint(1, t + 1, (e, b), generator=gen)
+    mask = (torch.arange(t) < lengths.unsqueeze(-1)).float()
+    terminated = torch.zeros(e, b, t)
+    ends = torch.rand(e, b, generator=gen) < 0.5  # the others were cut by the time limit
+    terminated.scatter_(-1, (lengths - 1).unsqueeze(-1), ends.float().unsqueeze(-1))
+    reward = torch.randn(e, b, t, generator=gen) * mask
+    values = torch.randn(e, b, t + 1, generator=gen)
+    torch.testing.assert_close(
+        lambda_returns(reward, terminated, mask, values, G, lam),
+        _lambda_returns_by_definition(reward, terminated, mask, values, G, lam),
+    )
