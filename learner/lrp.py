@@ -224,13 +224,61 @@ def critic_all_actions(
     n_agents: int,
     action_offset: int,
     n_actions: int,
+    keep: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The critic's value with agent i's action moved to a, the others' fixed, for every
-    (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`)."""
-    e, m, _ = x.shape
+    (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`; x may be the critic's
+    `AgentBlocks` input).
+
+    The first layer is linear, so moving agent i's action from u to a shifts its
+    pre-activation by W_i,a - W_i,u: the first layer runs once, on x, and only the layers above
+    it run per variant, and only on the variants `keep` [E, M, N, A] selects (e.g. available
+    actions at real steps; None: all). Every other entry holds Q_c(x) itself, which is the
+    exact value of the taken action's entry.
+    """
+    e, m, n = actions.shape
+    a = n_actions
     with torch.no_grad():
-        _, _, _, zs = _counterfactual_forward(mlp, x, actions, n_agents, action_offset, n_actions)
-    return zs[-1].view(e, m, n_agents, n_actions)
+        z1 = mlp.first(x)  # [E, M, H]
+        h = z1.shape[-1]
+        first = mlp.layers[0]
+        w_act = first.weight.view(e, n, -1, h)[:, :, action_offset : action_offset + a]
+        w_flat = w_act.reshape(e, n * a, h)  # row i*A + a: agent i's action-a weights
+        # whole rows picked by index_select on [E*rows, H] (gather with an index expanded
+        # over H is several times slower)
+        members = torch.arange(e, device=actions.device).view(e, 1)
+        agent_rows = torch.arange(n, device=actions.device) * a
+        taken_rows = (actions + agent_rows).view(e, m * n) + members * (n * a)
+        taken = w_flat.reshape(e * n * a, h).index_select(0, taken_rows.view(-1))
+        base = z1.unsqueeze(2) - taken.view(e, m, n, h)  # the pre-activation without a_i
+        q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
+        if keep is None:
+            z = (base.unsqueeze(3) + w_act.unsqueeze(1)).view(e, m * n * a, h)
+            return _upper_layers(mlp, z).view(e, m, n, a)
+        out = q_x.expand(e, m, n, a).clone().view(e, m * n * a)
+        picked = [torch.nonzero(k.reshape(-1)).squeeze(-1) for k in keep.unbind(0)]
+        width = max((len(p) for p in picked), default=0)
+        if width == 0:
+            return out.view(e, m, n, a)
+        rows = torch.zeros(e, width, dtype=torch.long, device=actions.device)
+        for member, p in enumerate(picked):  # pad every member to the same row count
+            rows[member, : len(p)] = p
+        mi, ia = rows // a, (rows // a) % n * a + rows % a  # row (m*N + i)*A + a
+        z = base.reshape(e * m * n, h).index_select(0, (mi + members * (m * n)).view(-1))
+        z = z + w_flat.reshape(e * n * a, h).index_select(0, (ia + members * (n * a)).view(-1))
+        z = z.view(e, width, h)
+        values = _upper_layers(mlp, z)  # [E, width]
+        for member, p in enumerate(picked):
+            out[member, p] = values[member, : len(p)]
+    return out.view(e, m, n, a)
+
+
+def _upper_layers(mlp: MLP, z1: torch.Tensor) -> torch.Tensor:
+    """The critic above its first layer, from first-layer pre-activations [E, R, H] -> [E, R]."""
+    z = z1
+    for layer in mlp.layers[1:]:
+        z = torch.baddbmm(layer.bias, torch.relu(z), layer.weight)
+    return z.squeeze(-1)
 
 
 def agent_relevance_all_actions(

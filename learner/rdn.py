@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
+from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_blocks, agent_inputs, masked_mean, obs_history
@@ -222,7 +223,11 @@ class RDNLearner(AgentCriticLearner):
         a = self.info.n_actions
         x = self.critic_inputs(hist_next, greedy)
         offset = self.cfg.obs_window * self.info.obs_dim
-        q = critic_all_actions(self.critic, x, greedy.reshape(e, b * t, n), n, offset, a)
+        # only the available deviations; the greedy action's own entry is Q_c(x)
+        moves = avail_next & ~F.one_hot(greedy, a).bool()
+        q = critic_all_actions(
+            self.critic, x, greedy.reshape(e, b * t, n), n, offset, a, moves.view(e, b * t, n, a)
+        )
         q = q.view(e, b, t, n, a).masked_fill(~avail_next, float("-inf"))
         best = q.view(e, b, t, n * a).argmax(-1)  # the greedy action itself is a candidate
         agent, action = best // a, best % a
@@ -253,11 +258,17 @@ class RDNLearner(AgentCriticLearner):
         return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta
 
     def _every_action_targets(
-        self, x: torch.Tensor, actions: torch.Tensor, shares: torch.Tensor, q_tot: torch.Tensor
+        self,
+        x: torch.Tensor,
+        actions: torch.Tensor,
+        shares: torch.Tensor,
+        q_tot: torch.Tensor,
+        trained: torch.Tensor,
     ) -> torch.Tensor:
         """Targets [E, B, T, N, A] for agent_targets "all_actions" or "counterfactual" (see
         RDNConfig), from critic inputs x, the taken actions [E, B, T, N], their LRP shares
-        [E, B, T, N] and Q_c(x) [E, B*T]."""
+        [E, B, T, N], Q_c(x) [E, B*T] and the entries the agents' loss uses [E, B, T, N, A]
+        (the counterfactual critic runs on those only; the others are not used)."""
         e, b, t, n = actions.shape
         args = (x, actions.reshape(e, b * t, n), n, self.cfg.obs_window * self.info.obs_dim)
         if self.cfg.agent_targets == "all_actions":
@@ -265,8 +276,10 @@ class RDNLearner(AgentCriticLearner):
                 self.critic, *args, self.info.n_actions, self.cfg.lrp_eps, self.cfg.lrp_rule
             )
             return every.view(e, b, t, n, -1)
-        q_alt = critic_all_actions(self.critic, *args, self.info.n_actions).view(e, b, t, n, -1)
-        return shares.unsqueeze(-1) + q_alt - q_tot.view(e, b, t, 1, 1)
+        a = self.info.n_actions
+        moves = trained & ~F.one_hot(actions, a).bool()  # the taken action's entry is Q_c(x)
+        q_alt = critic_all_actions(self.critic, *args, a, moves.view(e, b * t, n, a))
+        return shares.unsqueeze(-1) + q_alt.view(e, b, t, n, a) - q_tot.view(e, b, t, 1, 1)
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
@@ -292,9 +305,9 @@ class RDNLearner(AgentCriticLearner):
             mask = tb.mask.unsqueeze(-1).expand_as(chosen)
             agent_loss = masked_mean((chosen - targets).pow(2), mask)
         else:  # a target for every available action of every agent
-            every = self._every_action_targets(x, tb.actions, targets, q_tot)
-            ok = (tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]).float()
-            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok)
+            ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
+            every = self._every_action_targets(x, tb.actions, targets, q_tot, ok)
+            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok.float())
         self.agent_updater.apply(agent_loss)
 
         self.updates += 1

@@ -196,6 +196,26 @@ def test_critic_all_actions_is_the_critic_on_each_counterfactual():
             torch.testing.assert_close(got[..., i, u], mlp(_blocks(o, alt, a)).squeeze(-1))
 
 
+def test_critic_all_actions_on_selected_variants_only():
+    """With `keep`, the kept entries are the critic on those counterfactuals and every other
+    entry is the critic's value of x itself; members may keep different numbers."""
+    torch.manual_seed(5)
+    e, m, n, a, obs = 3, 6, 3, 5, 4
+    mlp = MLP(e, n * (obs + a + n), (8, 8), 1)
+    o = torch.randn(e, m, n, obs)
+    acts = torch.randint(0, a, (e, m, n))
+    x = _blocks(o, acts, a)
+    keep = torch.rand(e, m, n, a) < 0.4
+    keep[1] = False  # one member with nothing to compute
+    full = critic_all_actions(mlp, x, acts, n, obs, a)
+    got = critic_all_actions(mlp, x, acts, n, obs, a, keep)
+    torch.testing.assert_close(got[keep], full[keep])
+    q_x = mlp(x).view(e, m, 1, 1).expand_as(got)
+    torch.testing.assert_close(got[~keep], q_x[~keep])
+    none = critic_all_actions(mlp, x, acts, n, obs, a, torch.zeros_like(keep))
+    torch.testing.assert_close(none, q_x)
+
+
 def _encoder_mlp(e: int, n: int, block: int) -> MLP:
     from learner.networks import AgentBlockLinear
 
@@ -291,3 +311,36 @@ def test_rdn_local_max_next_action_is_the_best_available_single_agent_deviation(
     assert ((got != greedy).sum(-1) <= 1).all()
     metrics = learner.step(record_batch("skirmish/3m", 4, 1))
     assert metrics["lrp_conservation_gap"] < 1e-3
+
+
+def test_rdn_counterfactual_targets_are_the_share_plus_the_critics_difference():
+    """agent_targets "counterfactual" on a skirmish batch, by brute force: at every real step
+    and available action u of agent i, the target is agent i's LRP share plus
+    Q_c(x with a_i = u) - Q_c(x)."""
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.batch import TensorBatch, obs_history
+    from learner.rdn import RDNConfig, RDNLearner
+
+    torch.manual_seed(1)
+    cfg = RDNConfig(agent_targets="counterfactual", critic_hidden=(16, 16))
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    learner = RDNLearner(cfg, schema)
+    tb = TensorBatch.from_episodes(record_batch("skirmish/3m", 3, 1))
+    hist = obs_history(tb.obs, cfg.obs_window)[:, :, :-1]
+    e, b, t, n = tb.actions.shape
+    a = schema.n_actions
+    ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
+    with torch.no_grad():
+        x = learner.critic_inputs(hist, tb.actions)
+        shares, q = learner.agent_targets(x)
+        got = learner._every_action_targets(x, tb.actions, shares.view(e, b, t, n), q, ok)
+        q = learner.critic(x).view(e, b, t)
+        for i in range(n):
+            for u in range(a):
+                alt = tb.actions.clone()
+                alt[..., i] = u
+                q_alt = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
+                want = shares.view(e, b, t, n)[..., i] + q_alt - q
+                sel = ok[..., i, u]
+                torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
