@@ -91,7 +91,9 @@ def lrp_epsilon(
 class BlockRelevance(LazyTensor):
     """LRP relevance [E, M, N*block] of an `AgentBlocks` input, kept as each agent's sum
     (`per_agent` [E, M, N]) and what the dense values need: relevance = x * (s @ W1ᵀ), plus
-    for eps_residual the residual spread over the inputs in proportion to |x_j|."""
+    for eps_residual the residual spread over the inputs in proportion to |x_j|.
+    `first_preactivation` [E, M, H] is the critic's first layer on x, which LRP computes
+    anyway (`critic_all_actions` reuses it)."""
 
     def __new__(cls, x: AgentBlocks, *args, **kwargs):
         return super().__new__(cls, tuple(x.shape), x)
@@ -103,9 +105,11 @@ class BlockRelevance(LazyTensor):
         s1: torch.Tensor,
         w1: torch.Tensor,
         residual: torch.Tensor | None,
+        first_preactivation: torch.Tensor,
     ):
         super().__init__(tuple(x.shape), x)
         self.x, self.per_agent, self.s1, self.w1, self.residual = x, per_agent, s1, w1, residual
+        self.first_preactivation = first_preactivation
 
     def materialise(self) -> torch.Tensor:
         x = self.x.dense()
@@ -137,7 +141,8 @@ def _lrp_blocks(
             (s1,) = torch.autograd.grad(a.sum(), z)
         out = a.detach().squeeze(-1)
         per_agent = (c * s1.unsqueeze(2)).sum(-1)
-        return BlockRelevance(x, per_agent, s1, first.weight.detach().clone(), None), out
+        w1 = first.weight.detach().clone()
+        return BlockRelevance(x, per_agent, s1, w1, None, z1), out
     with torch.no_grad():
         zs, acts = [z1], []
         for layer in mlp.layers[1:]:
@@ -160,7 +165,7 @@ def _lrp_blocks(
             share = _share(weight)
             per_agent = per_agent + residual.unsqueeze(-1) * share
     w1 = first.weight.detach().clone()  # the critic may be updated before the values are used
-    return BlockRelevance(x, per_agent, s1, w1, residual), out
+    return BlockRelevance(x, per_agent, s1, w1, residual, z1), out
 
 
 def _grad_x_input(mlp: MLP, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -225,10 +230,12 @@ def critic_all_actions(
     action_offset: int,
     n_actions: int,
     keep: torch.Tensor | None = None,
+    first_preactivation: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The critic's value with agent i's action moved to a, the others' fixed, for every
     (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`; x may be the critic's
-    `AgentBlocks` input).
+    `AgentBlocks` input; `first_preactivation` [E, M, H], the first layer on x, when the caller
+    has it, e.g. `BlockRelevance.first_preactivation`).
 
     The first layer is linear, so moving agent i's action from u to a shifts its
     pre-activation by W_i,a - W_i,u: the first layer runs once, on x, and only the layers above
@@ -239,7 +246,7 @@ def critic_all_actions(
     e, m, n = actions.shape
     a = n_actions
     with torch.no_grad():
-        z1 = mlp.first(x)  # [E, M, H]
+        z1 = mlp.first(x) if first_preactivation is None else first_preactivation  # [E, M, H]
         h = z1.shape[-1]
         first = mlp.layers[0]
         w_act = first.weight.view(e, n, -1, h)[:, :, action_offset : action_offset + a]

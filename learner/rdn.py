@@ -39,6 +39,7 @@ from learner.common import (
 )
 from learner.lrp import (
     LRP_RULES,
+    BlockRelevance,
     agent_relevance,
     agent_relevance_all_actions,
     critic_all_actions,
@@ -235,8 +236,14 @@ class RDNLearner(AgentCriticLearner):
         return torch.where(moved, action.unsqueeze(-1), greedy)
 
     def agent_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(shares [E, M, N], Q_c(x) [E, M]): `_split` without its third part."""
+        shares, q, _ = self._split(x)
+        return shares, q
+
+    def _split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Each agent's LRP share of the critic's value for critic inputs x [E, M, N*block]:
-        (shares [E, M, N], Q_c(x) [E, M]).
+        (shares [E, M, N], Q_c(x) [E, M], the critic's first-layer pre-activation on x when
+        LRP computed it on the structured input, else None).
 
         lrp_reference "zero" (the seed's): LRP-ε of Q_c(x), agent i's share the relevance of
         its block. "no_actions": the same split of Q_c(x̄), x̄ = x with every action one-hot
@@ -247,7 +254,8 @@ class RDNLearner(AgentCriticLearner):
         cfg, n = self.cfg, self.info.n_agents
         if cfg.lrp_reference == "zero":
             relevance, q = lrp_epsilon(self.critic, x, cfg.lrp_eps, cfg.lrp_rule)
-            return agent_relevance(relevance, n), q
+            first = relevance.first_preactivation if isinstance(relevance, BlockRelevance) else None
+            return agent_relevance(relevance, n), q, first
         e, m, _ = x.shape
         start = cfg.obs_window * self.info.obs_dim
         x_ref = x.view(e, m, n, self.block).clone()
@@ -255,7 +263,7 @@ class RDNLearner(AgentCriticLearner):
         x_ref = x_ref.view_as(x)
         base, q_ref = lrp_epsilon(self.critic, x_ref, cfg.lrp_eps, cfg.lrp_rule)
         diff, delta = lrp_difference(self.critic, x, x_ref, cfg.lrp_eps)
-        return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta
+        return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta, None
 
     def _every_action_targets(
         self,
@@ -264,11 +272,13 @@ class RDNLearner(AgentCriticLearner):
         shares: torch.Tensor,
         q_tot: torch.Tensor,
         trained: torch.Tensor,
+        first: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Targets [E, B, T, N, A] for agent_targets "all_actions" or "counterfactual" (see
         RDNConfig), from critic inputs x, the taken actions [E, B, T, N], their LRP shares
         [E, B, T, N], Q_c(x) [E, B*T] and the entries the agents' loss uses [E, B, T, N, A]
-        (the counterfactual critic runs on those only; the others are not used)."""
+        (the counterfactual critic runs on those only; the others are not used), and the
+        critic's first layer on x if known."""
         e, b, t, n = actions.shape
         args = (x, actions.reshape(e, b * t, n), n, self.cfg.obs_window * self.info.obs_dim)
         if self.cfg.agent_targets == "all_actions":
@@ -278,7 +288,7 @@ class RDNLearner(AgentCriticLearner):
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
         moves = trained & ~F.one_hot(actions, a).bool()  # the taken action's entry is Q_c(x)
-        q_alt = critic_all_actions(self.critic, *args, a, moves.view(e, b * t, n, a))
+        q_alt = critic_all_actions(self.critic, *args, a, moves.view(e, b * t, n, a), first)
         return shares.unsqueeze(-1) + q_alt.view(e, b, t, n, a) - q_tot.view(e, b, t, 1, 1)
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
@@ -298,7 +308,7 @@ class RDNLearner(AgentCriticLearner):
         critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
         self.critic_updater.apply(critic_loss)
 
-        targets, q_tot = self.agent_targets(x)
+        targets, q_tot, first = self._split(x)
         targets = targets.view(e, b, t, n)
         if self.cfg.agent_targets == "taken":
             chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
@@ -306,7 +316,7 @@ class RDNLearner(AgentCriticLearner):
             agent_loss = masked_mean((chosen - targets).pow(2), mask)
         else:  # a target for every available action of every agent
             ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
-            every = self._every_action_targets(x, tb.actions, targets, q_tot, ok)
+            every = self._every_action_targets(x, tb.actions, targets, q_tot, ok, first)
             agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok.float())
         self.agent_updater.apply(agent_loss)
 

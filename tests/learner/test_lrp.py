@@ -333,8 +333,9 @@ def test_rdn_counterfactual_targets_are_the_share_plus_the_critics_difference():
     ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
     with torch.no_grad():
         x = learner.critic_inputs(hist, tb.actions)
-        shares, q = learner.agent_targets(x)
-        got = learner._every_action_targets(x, tb.actions, shares.view(e, b, t, n), q, ok)
+        shares, q, first = learner._split(x)  # first: the critic's first layer, from LRP
+        assert first is not None
+        got = learner._every_action_targets(x, tb.actions, shares.view(e, b, t, n), q, ok, first)
         q = learner.critic(x).view(e, b, t)
         for i in range(n):
             for u in range(a):
