@@ -40,20 +40,26 @@ def lambda_returns(
         [..., T]; padded steps hold 0.
     """
     t_len = reward.shape[-1]
-    if t_len == 0:
-        return torch.zeros_like(reward)
+    out = torch.zeros_like(reward)
+    # The per-step recursion below does exactly the arithmetic of
+    #   blend = nxt ((1 - λ) V_{t+1} + λ G_{t+1}) + (1 - nxt) V_{t+1}
+    #   G_t = r_t + γ (1 - term_t) blend
+    # (nxt: step t+1 is real), with everything that does not depend on G_{t+1} computed for
+    # all steps at once; results are bit for bit those of the step-by-step form.
     v_next = values[..., 1:]
-    # nxt_real[t]: step t+1 is a real step. Where it is not (the last real step, a cut
-    # episode's included), G_t = r_t + γ (1 - term_t) V_{t+1}; otherwise the blend. So
-    # G_t = a_t + b_t G_{t+1}, with the coefficients computed for every step at once.
     nxt_real = torch.cat([mask[..., 1:], torch.zeros_like(mask[..., :1])], dim=-1)
+    kept = (1.0 - lam) * v_next
+    bootstrap = (1.0 - nxt_real) * v_next
     discount = gamma * (1.0 - terminated)
-    a = reward + discount * v_next * (1.0 - lam * nxt_real)
-    b = discount * lam * nxt_real
-    returns = [a[..., t_len - 1]]
-    for t in range(t_len - 2, -1, -1):
-        returns.append(torch.addcmul(a[..., t], b[..., t], returns[-1]))
-    return torch.stack(returns[::-1], dim=-1) * mask
+    # At a padded step the "next return" is the bootstrap value itself, so the last real step
+    # of a cut episode reduces to r + γ V_{t+1}.
+    g_next = values[..., t_len]
+    for t in range(t_len - 1, -1, -1):
+        blend = nxt_real[..., t] * (kept[..., t] + lam * g_next) + bootstrap[..., t]
+        g = reward[..., t] + discount[..., t] * blend
+        out[..., t] = g * mask[..., t]
+        g_next = torch.where(mask[..., t] > 0, g, g_next)
+    return out
 
 
 def q_lambda_targets(
