@@ -83,8 +83,11 @@ def test_per_algorithm_env_layer_applies_to_that_algorithm_only(algo, env, td_la
 
 
 @pytest.mark.parametrize("env", ["skirmish/3m", "smac/3m"])
-def test_rdn_ships_counterfactual_targets_and_the_seed_recipe_is_two_keys_away(env):
-    assert load_train_config("rdn", env, [], []).algo.agent_targets == "counterfactual"
-    seed = load_train_config("rdn", env, [], ["algo.agent_targets=taken", "algo.td_lambda=0"]).algo
-    assert (seed.agent_targets, seed.td_lambda) == ("taken", 0.0)
-    assert load_train_config("rdn", "matrix/four_game", [], []).algo.agent_targets == "taken"
+def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_three_keys_away(env):
+    shipped = load_train_config("rdn", env, [], []).algo
+    assert (shipped.agent_targets, shipped.td_lambda, shipped.lr) == ("counterfactual", 0.8, 1e-3)
+    seed_keys = ["algo.agent_targets=taken", "algo.td_lambda=0", "algo.lr=0.0005"]
+    seed = load_train_config("rdn", env, [], seed_keys).algo
+    assert (seed.agent_targets, seed.td_lambda, seed.lr) == ("taken", 0.0, 5e-4)
+    matrix = load_train_config("rdn", "matrix/four_game", [], []).algo
+    assert (matrix.agent_targets, matrix.td_lambda, matrix.lr) == ("taken", 0.0, 5e-4)
