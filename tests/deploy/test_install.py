@@ -96,7 +96,12 @@ def test_layers_are_found_through_the_package():
     names = [
         Path(str(p)).relative_to(CONFIGS).as_posix() for p in default_files("qmix", "skirmish/3m")
     ]
-    assert names == ["envs/skirmish.yaml", "algos/qmix.yaml", "envs/skirmish.value.yaml"]
+    assert names == [
+        "envs/skirmish.yaml",
+        "algos/qmix.yaml",
+        "envs/skirmish.value.yaml",
+        "envs/skirmish.qmix.yaml",
+    ]
 
 
 @pytest.mark.parametrize("algo", sorted(ALGOS))
