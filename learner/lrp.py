@@ -241,8 +241,8 @@ def critic_all_actions(
     The first layer is linear, so moving agent i's action from u to a shifts its
     pre-activation by W_i,a - W_i,u: the first layer runs once, on x, and only the layers above
     it run per variant, and only on the variants `keep` [E, M, N, A] selects (e.g. available
-    actions at real steps; None: all). Every other entry holds Q_c(x) itself, which is the
-    exact value of the taken action's entry.
+    actions at real steps; None: all) other than the taken actions. Every other entry holds
+    Q_c(x) itself, which is the exact value of the taken action's entry.
     """
     e, m, n = actions.shape
     a = n_actions
@@ -259,10 +259,10 @@ def critic_all_actions(
         taken_rows = (actions + agent_rows).view(e, m * n) + members * (n * a)
         taken = w_flat.reshape(e * n * a, h).index_select(0, taken_rows.view(-1))
         base = z1.unsqueeze(2) - taken.view(e, m, n, h)  # the pre-activation without a_i
-        q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
         if keep is None:
-            z = (base.unsqueeze(3) + w_act.unsqueeze(1)).view(e, m * n * a, h)
-            return _upper_layers(mlp, z).view(e, m, n, a)
+            keep = torch.ones(e, m, n, a, dtype=torch.bool, device=actions.device)
+        keep = keep & ~F.one_hot(actions, a).bool()  # the taken action's entry is Q_c(x)
+        q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
         out = q_x.expand(e, m, n, a).clone().view(e, m * n * a)
         picked = [torch.nonzero(k.reshape(-1)).squeeze(-1) for k in keep.unbind(0)]
         width = max((len(p) for p in picked), default=0)
@@ -271,7 +271,8 @@ def critic_all_actions(
         rows = torch.zeros(e, width, dtype=torch.long, device=actions.device)
         for member, p in enumerate(picked):  # pad every member to the same row count
             rows[member, : len(p)] = p
-        mi, ia = rows // a, (rows // a) % n * a + rows % a  # row (m*N + i)*A + a
+        mi = rows // a  # row (m*N + i)*A + a
+        ia = mi % n * a + rows % a
         # z = base[m, i] + W_i,a for every picked row, as one sum of two looked-up rows of one
         # table (no intermediate [rows, H] tensors: on bane_vs_bane there are 10^5 rows)
         table = torch.cat([base.reshape(e * m * n, h), w_flat.reshape(e * n * a, h)])

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
-from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import TensorBatch, agent_blocks, agent_inputs, masked_mean, obs_history
@@ -224,11 +223,8 @@ class RDNLearner(AgentCriticLearner):
         a = self.info.n_actions
         x = self.critic_inputs(hist_next, greedy)
         offset = self.cfg.obs_window * self.info.obs_dim
-        # only the available deviations; the greedy action's own entry is Q_c(x)
-        moves = avail_next & ~F.one_hot(greedy, a).bool()
-        q = critic_all_actions(
-            self.critic, x, greedy.reshape(e, b * t, n), n, offset, a, moves.view(e, b * t, n, a)
-        )
+        avail = avail_next.reshape(e, b * t, n, a)  # only the available deviations
+        q = critic_all_actions(self.critic, x, greedy.reshape(e, b * t, n), n, offset, a, avail)
         q = q.view(e, b, t, n, a).masked_fill(~avail_next, float("-inf"))
         best = q.view(e, b, t, n * a).argmax(-1)  # the greedy action itself is a candidate
         agent, action = best // a, best % a
@@ -287,8 +283,7 @@ class RDNLearner(AgentCriticLearner):
             )
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
-        moves = trained & ~F.one_hot(actions, a).bool()  # the taken action's entry is Q_c(x)
-        q_alt = critic_all_actions(self.critic, *args, a, moves.view(e, b * t, n, a), first)
+        q_alt = critic_all_actions(self.critic, *args, a, trained.view(e, b * t, n, a), first)
         return shares.unsqueeze(-1) + q_alt.view(e, b, t, n, a) - q_tot.view(e, b, t, 1, 1)
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
