@@ -220,9 +220,11 @@ class TrainLoop:
         """The acting and data sides' counters and RNG states, for a checkpoint."""
         return {**self.acting.state(), **self.data.state()}
 
-    def save(self, path: Path) -> None:
-        """Checkpoint the learner, the loop and (local mode) the buffer tables to `path`."""
-        self.core.save(path, self.state(), files=self.data.write)
+    def save(self, path: Path, replay: bool = True) -> None:
+        """Checkpoint the learner, the loop and (local mode, with `replay`) the buffer tables
+        to `path`. Without them the checkpoint holds the networks, optimisers and counters
+        only (a resumed run refills its replay)."""
+        self.core.save(path, self.state(), files=self.data.write if replay else None)
 
     def restore(self, path: Path) -> None:
         """Continue from a checkpoint written by `save`."""

@@ -213,8 +213,8 @@ def _register_curves(
     m.add_argument(
         "--checkpoints",
         action="store_true",
-        help="save each pair's final checkpoint (all seeds) to OUT/checkpoints/<env>__<algo>/ "
-        "(for `credit inspect relevance --run`)",
+        help="save each pair's final checkpoint (all seeds; networks, optimisers and counters, "
+        "not the replay) to OUT/checkpoints/<env>__<algo>/ (for `credit inspect relevance --run`)",
     )
     m.set_defaults(func=lambda args: cmd_curves(args, name, experiment))
     return m

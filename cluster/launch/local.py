@@ -201,8 +201,8 @@ class LocalTrainer:
         env steps (`TrainLoop.train`)."""
         self.loop.train(on_eval, progress, stop)
 
-    def save(self, path: Path) -> None:
-        self.loop.save(path)
+    def save(self, path: Path, replay: bool = True) -> None:
+        self.loop.save(path, replay)
 
     def restore(self, path: Path) -> None:
         self.loop.restore(path)

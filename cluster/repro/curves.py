@@ -96,7 +96,9 @@ def run_pair(
     """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer.
 
     Args:
-        checkpoint: also return the final checkpoint (every seed, `credit train`'s format).
+        checkpoint: also return the final checkpoint (every seed, `credit train`'s format:
+            networks, optimisers and counters, without the replay, which on the larger maps
+            is gigabytes).
         report: called with one JSON line per evaluation (the pair's evaluation log).
     """
     import torch
@@ -137,7 +139,7 @@ def run_pair(
     files: tuple[tuple[str, bytes], ...] = ()
     if checkpoint:
         with tempfile.TemporaryDirectory() as tmp:
-            trainer.save(Path(tmp) / "ckpt")
+            trainer.save(Path(tmp) / "ckpt", replay=False)
             root = Path(tmp) / "ckpt"
             files = tuple(
                 (str(f.relative_to(root)), f.read_bytes())

@@ -132,6 +132,28 @@ def test_local_resume_keeps_the_replay_and_continues_exactly(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+
+def test_a_checkpoint_without_the_replay_holds_the_networks_and_resumes_with_an_empty_one(
+    tmp_path,
+):
+    """`save(path, replay=False)` (what `credit repro --checkpoints` writes): no buffer
+    tables, the same learner state, and a resumed run starts from an empty replay."""
+    first = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=150"))
+    first.train()
+    first.save(tmp_path / "full")
+    first.save(tmp_path / "small", replay=False)
+    assert (tmp_path / "full" / "buffer").is_dir()
+    assert not (tmp_path / "small" / "buffer").exists()
+    full = torch.load(tmp_path / "full" / "learner.pt", weights_only=False)
+    small = torch.load(tmp_path / "small" / "learner.pt", weights_only=False)
+    assert all(torch.equal(full["agent"][k], small["agent"][k]) for k in full["agent"])
+    resumed = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300"))
+    resumed.restore(tmp_path / "small")
+    assert resumed.core.t_env == first.core.t_env
+    assert resumed.data.buffers[0].stats()["tables"]["replay"]["size"] == 0
+    a, b = _learner_state(first), _learner_state(resumed)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
 def test_actor_seeds_come_from_the_run_seed_and_actor_id_only():
     assert actor_seed(7, 0) == 7  # the local worker is actor 0
     seeds = {actor_seed(7, i) for i in range(1, 50)}

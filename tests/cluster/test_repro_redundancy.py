@@ -83,5 +83,6 @@ def test_tiny_redundancy_run_writes_every_figure_summary_and_checkpoints(tmp_pat
     for name in ("median", "variance", "p75", "p25", "final", "bane_z1", "bane_no_z"):
         assert (out / f"redundancy_{name}.png").stat().st_size > 0
     assert (out / "checkpoints" / "skirmish-bane_z1__rdn" / "learner.pt").exists()
+    assert not (out / "checkpoints" / "skirmish-bane_z1__rdn" / "buffer").exists()  # no replay
     rows = [json.loads(x) for x in (out / "evals" / "skirmish-bane_z1__rdn.jsonl").open()]
     assert all(len(r["won"]) == 2 for r in rows)
