@@ -132,7 +132,6 @@ def test_local_resume_keeps_the_replay_and_continues_exactly(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-
 def test_a_checkpoint_without_the_replay_holds_the_networks_and_resumes_with_an_empty_one(
     tmp_path,
 ):
@@ -153,6 +152,7 @@ def test_a_checkpoint_without_the_replay_holds_the_networks_and_resumes_with_an_
     assert resumed.data.buffers[0].stats()["tables"]["replay"]["size"] == 0
     a, b = _learner_state(first), _learner_state(resumed)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
 
 def test_actor_seeds_come_from_the_run_seed_and_actor_id_only():
     assert actor_seed(7, 0) == 7  # the local worker is actor 0
