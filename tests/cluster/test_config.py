@@ -82,6 +82,19 @@ def test_per_algorithm_env_layer_applies_to_that_algorithm_only(algo, env, td_la
     assert load_train_config(algo, env, [], ["algo.td_lambda=0.3"]).algo.td_lambda == 0.3
 
 
+@pytest.mark.parametrize(
+    ("algo", "env", "lr"),
+    [
+        ("iql", "skirmish/3m", 1e-3),  # envs/skirmish.iql.yaml
+        ("iql", "smac/3m", 1e-3),  # envs/smac.iql.yaml
+        ("iql", "matrix/two_step", 5e-4),
+        ("vdn", "skirmish/3m", 5e-4),
+    ],
+)
+def test_iql_ships_its_measured_learning_rate_on_smac_like_maps_only(algo, env, lr):
+    assert load_train_config(algo, env, [], []).algo.lr == lr
+
+
 @pytest.mark.parametrize("env", ["skirmish/3m", "smac/3m"])
 def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_three_keys_away(env):
     shipped = load_train_config("rdn", env, [], []).algo
