@@ -208,6 +208,26 @@ class EpisodeBatch:
         return cls(**out, **scal)
 
     @classmethod
+    def from_members(cls, members: list[list[Episode]]) -> EpisodeBatch:
+        """One batch per ensemble member, stacked [E, B, ...]: the same arrays as
+        `stack([from_episodes(m) for m in members])`, padded once to the longest episode of
+        any member and written in place (no second padding copy)."""
+        sizes = {len(m) for m in members}
+        if len(sizes) != 1:
+            raise EpisodeError(f"members hold different numbers of episodes: {sorted(sizes)}")
+        flat = [ep for m in members for ep in m]
+        if not flat:
+            raise EpisodeError("cannot batch zero episodes")
+        whole = cls.from_episodes(flat, pad_to=max(ep.length for ep in flat))
+        e = len(members)
+        return cls(
+            **{
+                f.name: getattr(whole, f.name).reshape(e, -1, *getattr(whole, f.name).shape[1:])
+                for f in fields(cls)
+            }
+        )
+
+    @classmethod
     def stack(cls, batches: list[EpisodeBatch]) -> EpisodeBatch:
         """Stack same-shaped batches along a new leading ensemble axis E."""
         t = max(b.max_t for b in batches)

@@ -98,8 +98,10 @@ class LocalData:
             episodes, _ = drop_stale(buf.sample_episodes(table, n), version, limit, self.stats)
             if not episodes:
                 return None
-            members.append(EpisodeBatch.from_episodes(episodes))
-        return members[0] if len(members) == 1 else EpisodeBatch.stack(members)
+            members.append(episodes)
+        if len(members) == 1:
+            return EpisodeBatch.from_episodes(members[0])
+        return EpisodeBatch.from_members(members)
 
     def write(self, folder: Path) -> None:
         for k, buf in enumerate(self.buffers):
