@@ -27,6 +27,7 @@ import yaml
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
+from cluster.alloc import keep_freed_memory
 from cluster.config.plan import data_plan
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
@@ -117,6 +118,8 @@ class TrainerCore:
         self.checkpoint_dir = checkpoint_dir
         run = cfg.run
         torch.set_num_threads(run.torch_threads)
+        if run.keep_freed_memory:
+            keep_freed_memory()
         torch.manual_seed(run.seed)
         self.spec = get_algo(cfg.algo_name)
         self.plan = data_plan(cfg, actors)

@@ -6,6 +6,9 @@ One batch of `--batch` episodes is recorded once on `--env` with a uniformly ran
 that same batch. Rounds interleave the algorithms so that drift in the machine's load hits them
 alike; the JSON has each one's median milliseconds per update, its ratio to the first
 (`ratio`: the last algorithm's), and how much one update raises resident memory.
+The allocator is set up as training sets it (`run.keep_freed_memory`, on by default:
+`cluster.alloc`), the same for every algorithm; with it on, memory an update reuses from the
+previous one is not counted in `peak_mib_per_update`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from actors.envs.registry import make_vec_env
 from actors.policy import ExplorationConfig
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
+from cluster.alloc import keep_freed_memory
 from cluster.bench.common import emit
 from cluster.commands import add_command
 from cluster.config.train import load_train_config
@@ -118,10 +122,17 @@ def cmd_update(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise UsageError(str(e)) from None
     torch.set_num_threads(1)
-    batch = record_batch(args.env, args.batch, args.seeds)
-    learners = {}
+    learners, cfgs = {}, {}
     for a in algos:
-        cfg = load_train_config(a, args.env, [], overrides_for(a, args.set))
+        cfgs[a] = load_train_config(a, args.env, [], overrides_for(a, args.set))
+    # the allocator is process-wide: every algorithm runs under the same setting
+    keep = {cfgs[a].run.keep_freed_memory for a in algos}
+    if len(keep) != 1:
+        raise UsageError("run.keep_freed_memory must be the same for every algorithm")
+    kept = keep_freed_memory() if keep.pop() else False
+    batch = record_batch(args.env, args.batch, args.seeds)
+    for a in algos:
+        cfg = cfgs[a]
         learner = get_algo(a).build(
             cfg.algo, make_vec_env(args.env, 1).info.schema(), args.seeds, "cpu"
         )
@@ -149,6 +160,7 @@ def cmd_update(args: argparse.Namespace) -> int:
             f"ratio_to_{first}": {a: round(ms[a] / ms[first], 2) for a in algos},
             "ratio": round(ms[algos[-1]] / ms[first], 2),  # the last algo's to the first's
             "peak_mib_per_update": peak,
+            "keep_freed_memory": kept,
             "rounds_ms": {a: [round(x, 2) for x in v] for a, v in times.items()},
             "load_avg_1m": os.getloadavg()[0],
         },

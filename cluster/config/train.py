@@ -113,6 +113,10 @@ class RunConfig:
             rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
+        keep_freed_memory: keep freed heap memory in the learner's process instead of
+            returning it to the OS after every update (glibc only: `cluster.alloc`); 20-25%
+            cheaper updates on maps with large batches, at the price of a resident size that
+            stays at its peak.
         max_policy_lag: drop sampled episodes more than this many versions behind the
             learner before an update, in both modes (0 = keep all; off-policy learners
             replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
@@ -127,6 +131,7 @@ class RunConfig:
     device: str = "cpu"
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
+    keep_freed_memory: bool = True
     max_policy_lag: int = 0
 
     def validate(self) -> None:

@@ -64,6 +64,10 @@ def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys):
         (["bench", "learn", "--env", "matrix/two_step"], "reports no battle wins"),
         (["bench", "learn", "--algo", "dqn"], "unknown algorithm 'dqn'"),
         (["bench", "update", "--algos", "vdn,dqn"], "unknown algorithm 'dqn'"),
+        (
+            ["bench", "update", "--algos", "vdn,rdn", "--set", "vdn:run.keep_freed_memory=false"],
+            "run.keep_freed_memory must be the same for every algorithm",
+        ),
         (["repro", "smac", "--out", "x", "--algos", "qmix,nope"], "unknown algorithm 'nope'"),
     ],
 )
@@ -73,9 +77,12 @@ def test_bad_input_exits_2(argv, message, capsys):
 
 
 def test_bench_update_times_algorithms_side_by_side(capsys):
+    # in-process: leave this test session's allocator alone (tests/cluster/test_alloc.py)
     argv = ["bench", "update", "--env", "skirmish/3m", "--algos", "vdn,rdn", "--batch", "4"]
+    argv += ["--set", "run.keep_freed_memory=false"]
     assert main([*argv, "--rounds", "1", "--updates", "1"]) == 0
     got = json.loads(capsys.readouterr().out)
+    assert got["keep_freed_memory"] is False
     assert set(got["ms_per_update"]) == {"vdn", "rdn"} and got["ratio_to_vdn"]["vdn"] == 1.0
     assert got["ratio"] == got["ratio_to_vdn"]["rdn"]
     assert set(got["peak_mib_per_update"]) == {"vdn", "rdn"}
