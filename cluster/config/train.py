@@ -172,6 +172,10 @@ class ClusterConfig:
             default). For actors on other machines set the head node's IP: the service then
             requires its token, which the launcher always sets, and each actor's exporter binds
             its own node's IP.
+        buffer_repair: start (and restart) the buffer service with `--repair`: from a damaged
+            buffer folder it keeps what can still be read and discards, naming them in its
+            log, the records that cannot; off, it refuses to start on damage and so does the
+            run (`credit buffer verify DIR` reports what is there).
     """
 
     actors: int = 2
@@ -182,6 +186,7 @@ class ClusterConfig:
     sample_timeout_s: float = 30.0
     metrics: bool = True
     bind_host: str = "127.0.0.1"
+    buffer_repair: bool = False
 
     def validate(self) -> None:
         if self.actors < 1:

@@ -64,9 +64,10 @@ class BufferProcess:
         token: str | None = None,
         host: str = "127.0.0.1",
         seed: int | None = None,
+        repair: bool = False,
     ):
         self.tables, self.schema, self.folder = tables, schema, Path(folder)
-        self.seed = seed
+        self.seed, self.repair = seed, repair
         self.fsync, self.metrics = fsync, metrics
         self.token = token or secrets.token_hex(16)
         self.host = host
@@ -86,6 +87,8 @@ class BufferProcess:
             cmd.append("--no-fsync")
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
+        if self.repair:
+            cmd.append("--repair")
         if self.metrics:
             cmd += ["--metrics-port", str(self.metrics_port or 0)]
         return cmd

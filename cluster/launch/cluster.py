@@ -62,6 +62,7 @@ class ClusterTrainer:
             metrics=self.ccfg.metrics,
             host=self.ccfg.bind_host,
             seed=cfg.run.seed * 1000,  # what local mode's (first) tables sample with
+            repair=self.ccfg.buffer_repair,
         )
         self.metrics = LearnerMetrics() if self.ccfg.metrics else None
         self.stats = LoopStats()

@@ -124,6 +124,27 @@ def test_the_service_never_comes_up_silently_empty(tmp_path, caplog):
     assert "--repair discards" in caplog.text
 
 
+def test_the_launchers_buffer_process_refuses_damage_unless_told_to_repair(tmp_path):
+    from cluster.launch.buffer_proc import BufferProcess
+
+    data = tmp_path / "buffer" / "data"
+    three_generations(data)
+    for name in ("snapshot-00000001.bin", "snapshot-00000002.bin"):
+        episode = [r for r in records.scan_file(str(data / name)).records][-2]
+        flip(data / name, episode.offset + records.HEAD_SIZE + 50)
+    proc = BufferProcess(TABLES, SCHEMA, tmp_path / "buffer", metrics=False)
+    with pytest.raises(RuntimeError, match="refusing to start"):
+        proc.start()
+    proc = BufferProcess(TABLES, SCHEMA, tmp_path / "buffer", metrics=False, repair=True)
+    proc.start()
+    try:
+        with BufferClient(port=proc.port, token=proc.token, max_retries=2) as c:
+            assert c.stats()["episodes_stored"] == 14  # the newest snapshot's intact ones + its log
+    finally:
+        proc.stop()
+    assert "--repair discards" in (tmp_path / "buffer" / "service.log").read_text()
+
+
 def test_verify_command_prints_tables_episodes_and_damage(tmp_path, capsys):
     from cluster.cli import main
 
