@@ -114,7 +114,7 @@ class RunConfig:
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
             are small; more threads mostly spin against the actors for the same cores).
         keep_freed_memory: keep freed heap memory in the learner's process instead of
-            returning it to the OS after every update (glibc only: `cluster.alloc`); 20-25%
+            returning it to the OS after every update (glibc only: `cluster.alloc`); 17-23%
             cheaper updates on maps with large batches, at the price of a resident size that
             stays at its peak.
         max_policy_lag: drop sampled episodes more than this many versions behind the
