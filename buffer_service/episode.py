@@ -219,13 +219,8 @@ class EpisodeBatch:
         if not flat:
             raise EpisodeError("cannot batch zero episodes")
         whole = cls.from_episodes(flat, pad_to=max(ep.length for ep in flat))
-        e = len(members)
-        return cls(
-            **{
-                f.name: getattr(whole, f.name).reshape(e, -1, *getattr(whole, f.name).shape[1:])
-                for f in fields(cls)
-            }
-        )
+        arrays = {f.name: getattr(whole, f.name) for f in fields(cls)}
+        return cls(**{k: a.reshape(len(members), -1, *a.shape[1:]) for k, a in arrays.items()})
 
     @classmethod
     def stack(cls, batches: list[EpisodeBatch]) -> EpisodeBatch:

@@ -66,10 +66,9 @@ def record_batch(env: str, episodes: int, seeds: int) -> EpisodeBatch:
     agent = cfg.algo.agent.build(seeds, schema)
     worker = RolloutWorker(venv, agent, "q", ExplorationConfig(1.0, 1.0, 1), seeds)
     eps = worker.run_round(t_env=0).episodes
-    parts = [
-        EpisodeBatch.from_episodes(eps[k * episodes : (k + 1) * episodes]) for k in range(seeds)
-    ]
-    return parts[0] if seeds == 1 else EpisodeBatch.stack(parts)
+    if seeds == 1:
+        return EpisodeBatch.from_episodes(eps)
+    return EpisodeBatch.from_members([eps[k * episodes : (k + 1) * episodes] for k in range(seeds)])
 
 
 def _status_kib(field: str) -> int | None:
