@@ -255,9 +255,9 @@ class AgentBlocks(LazyTensor):
     windows (an `ObsWindows`), the actions and A.
 
     `block_l1`, `alive_rows` and `action_index` are what the critic's first layer
-    (`learner.networks.block_contributions`) and LRP's per-agent sums (`learner.lrp`) need.
-    Any other torch operation sees the dense tensor (`agent_blocks_dense`, computed once on
-    first use). Built by `agent_blocks`.
+    (`learner.networks.block_preactivation`) and LRP's per-agent sums (`learner.lrp`,
+    `learner.networks.block_dot`) need. Any other torch operation sees the dense tensor
+    (`agent_blocks_dense`, computed once on first use). Built by `agent_blocks`.
 
     Series index s (0 .. T'+W-2) is observation step hist.start + s - (W-1): window t holds
     series rows t .. t+W-1.

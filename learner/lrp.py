@@ -33,7 +33,7 @@ from torch.nn import functional as F
 
 from learner.batch import AgentBlocks
 from learner.lazy import LazyTensor
-from learner.networks import MLP, block_contributions
+from learner.networks import MLP, block_dot, block_preactivation, project_rows
 
 LrpRule = Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"]
 LRP_RULES: tuple[str, ...] = ("eps_residual", "eps", "eps_nobias", "grad_x_input")
@@ -127,12 +127,12 @@ def _lrp_blocks(
 ) -> tuple[BlockRelevance, torch.Tensor]:
     """`lrp_epsilon` on an AgentBlocks input. The first layer is linear, so agent i's summed
     first-layer relevance Σ_{j in block i} x_j Σ_k w_jk s_k is Σ_k s_k c_ik, with c_i its
-    block's contribution to the pre-activation (`block_contributions`); the layers above run
-    as in the dense rule. grad_x_input likewise: Σ_k (∂out/∂z1_k) c_ik."""
+    block's contribution to the pre-activation (`block_dot`, which never builds c); the
+    layers above run as in the dense rule. grad_x_input likewise: Σ_k (∂out/∂z1_k) c_ik."""
     first = mlp.layers[0]
     with torch.no_grad():
-        c = block_contributions(first, x)  # [E, M, N, H]
-        z1 = c.sum(2) + first.bias
+        proj = project_rows(first, x)  # each observation times its window slots' weights
+        z1 = block_preactivation(first, x, proj)
     if rule == "grad_x_input":
         with torch.enable_grad():
             z = z1.detach().requires_grad_(True)
@@ -141,7 +141,8 @@ def _lrp_blocks(
                 a = layer(torch.relu(a))
             (s1,) = torch.autograd.grad(a.sum(), z)
         out = a.detach().squeeze(-1)
-        per_agent = (c * s1.unsqueeze(2)).sum(-1)
+        with torch.no_grad():
+            per_agent = block_dot(first, x, s1, proj)
         w1 = first.weight.detach().clone()
         return BlockRelevance(x, per_agent, s1, w1, None, z1), out
     with torch.no_grad():
@@ -156,8 +157,8 @@ def _lrp_blocks(
             z = zs[k] if rule != "eps_nobias" else torch.bmm(acts[k - 1], layer.weight)
             s = relevance / _stabilise(z, eps)
             relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
-        s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else c.sum(2), eps)
-        per_agent = (c * s1.unsqueeze(2)).sum(-1)  # [E, M, N]
+        s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else z1 - first.bias, eps)
+        per_agent = block_dot(first, x, s1, proj)  # [E, M, N]
         out = out.squeeze(-1)
         residual = None
         if rule == "eps_residual":
@@ -217,7 +218,7 @@ def _counterfactual_forward(
     z1 = contrib.sum(2)[:, :, None, None, :] + first.bias.view(e, 1, 1, 1, -1) + delta
     acts, zs = [torch.relu(z1).reshape(e, m * n * a, h)], [z1.reshape(e, m * n * a, h)]
     for layer in mlp.layers[1:]:
-        z = torch.baddbmm(layer.bias, acts[-1], layer.weight)
+        z = torch.bmm(acts[-1], layer.weight).add_(layer.bias)
         zs.append(z)
         acts.append(torch.relu(z))
     return contrib, delta, acts, zs
@@ -261,7 +262,8 @@ def critic_all_actions(
         base = z1.unsqueeze(2) - taken.view(e, m, n, h)  # the pre-activation without a_i
         if keep is None:
             keep = torch.ones(e, m, n, a, dtype=torch.bool, device=actions.device)
-        keep = keep & ~F.one_hot(actions, a).bool()  # the taken action's entry is Q_c(x)
+        keep = keep.clone()  # the taken action's entry is Q_c(x)
+        keep.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)
         q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
         out = q_x.expand(e, m, n, a).clone().view(e, m * n * a)
         picked = [torch.nonzero(k.reshape(-1)).squeeze(-1) for k in keep.unbind(0)]
@@ -290,7 +292,7 @@ def _upper_layers(mlp: MLP, z1: torch.Tensor, in_place: bool = False) -> torch.T
     z = z1
     for k, layer in enumerate(mlp.layers[1:]):
         a = torch.relu_(z) if in_place or k > 0 else torch.relu(z)
-        z = torch.baddbmm(layer.bias, a, layer.weight)
+        z = torch.bmm(a, layer.weight).add_(layer.bias)
     return z.squeeze(-1)
 
 

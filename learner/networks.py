@@ -156,7 +156,7 @@ class MLP(nn.Module):
     Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP. With `first` given
     (e.g. an `AgentBlockLinear`), that layer comes first and `in_features` is ignored. An
     `AgentBlocks` input (RDN's critic input, kept as its parts) goes through the first layer by
-    `block_contributions`, which multiplies each observation once instead of the dense input.
+    `block_preactivation`, which multiplies each observation once instead of the dense input.
     """
 
     def __init__(
@@ -194,33 +194,50 @@ class MLP(nn.Module):
         return acts
 
 
-def block_contributions(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
-    """Each agent's block's part of a linear layer's pre-activation: c [E, M, N, H] with
-    layer(x) = c.sum(2) + bias (differentiable in the layer's weight).
+def block_preactivation(
+    layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
+) -> torch.Tensor:
+    """layer(x) for an AgentBlocks x, [E, M, H] (differentiable in the layer's weight).
 
-    c_i = Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i], where W_i,w are the rows
-    of agent i's window slot w. Every non-zero observation is multiplied once by the weights
-    of all W slots ([K, O] x [O, W*H] per member and agent) and added into the W windows it
-    sits in; all-zero observations (dead agents, padding) are skipped, and the one-hots are
-    row look-ups. The dense product x @ W multiplies each observation W times, mostly zeros.
-    """
-    e, m, _ = x.shape
-    n, h = x.n_agents, layer.out_features
-    hist = _window_terms(layer, x, per_agent=True)
-    w_act, w_id = _onehot_weights(layer, x)
-    own_action = F.embedding(x.action_index(), w_act)  # [E, M, N, H]
-    return hist.reshape(e, m, n, h) + own_action + w_id.unsqueeze(1)
-
-
-def block_preactivation(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
-    """layer(x) for an AgentBlocks x, [E, M, H]: `block_contributions` summed over agents as
-    it is built (no per-agent tensor)."""
+    Agent i's block contributes Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i],
+    where W_i,w are the rows of agent i's window slot w. Every non-zero observation is
+    multiplied once by the weights of all W slots (`project_rows`; pass `proj` if the caller
+    has it) and added into the W windows it sits in; all-zero observations (dead agents,
+    padding) are skipped, and the one-hots are row look-ups. The dense product x @ W
+    multiplies each observation W times, mostly zeros."""
     e, m, _ = x.shape
     h = layer.out_features
-    hist = _window_terms(layer, x, per_agent=False).reshape(e, m, h)
+    hist = _window_terms(layer, x, proj).reshape(e, m, h)
     w_act, w_id = _onehot_weights(layer, x)
     actions = F.embedding_bag(x.action_index().view(e * m, -1), w_act, mode="sum")
     return hist + actions.view(e, m, h) + (w_id.sum(1) + layer.bias.squeeze(1)).unsqueeze(1)
+
+
+def block_dot(
+    layer: EnsembleLinear, x: AgentBlocks, s: torch.Tensor, proj: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Σ_h c_ih s_h for every row and agent, [E, M, N], where c_i [E, M, H] is agent i's
+    block's part of `block_preactivation(layer, x)` (without the bias) and s [E, M, H] (e.g.
+    LRP's relevance ratios of the first layer). c is never built: each projected observation
+    (`project_rows`) is dotted with s at the W windows it sits in and the sums are added into
+    its agent's entries; the one-hot parts are s times the action and id rows."""
+    e, m, _ = x.shape
+    n, w, a, h = x.n_agents, x.window, x.n_actions, layer.out_features
+    proj = project_rows(layer, x) if proj is None else proj
+    _, _, to_agent, to_sum = x.alive_rows()
+    shape = (e, x.episodes, x.span)
+    s_span = s.new_zeros(*shape, h)
+    s_span[:, :, w - 1 : w - 1 + x.steps] = s.view(e, x.episodes, x.steps, h)
+    slots = torch.arange(w, device=s.device)
+    g = s_span.view(-1, h).index_select(0, (to_sum.unsqueeze(1) - slots).view(-1))
+    dots = (proj.view(-1, h) * g).sum(-1)  # [K*W]: row k's slot w dotted with its window
+    dest = (to_agent.unsqueeze(1) - n * slots).view(-1)
+    buf = s.new_zeros(math.prod(shape) * n).index_add_(0, dest, dots)
+    hist = buf.view(*shape, n)[:, :, w - 1 : w - 1 + x.steps].reshape(e, m, n)
+    w_act, w_id = _onehot_weights(layer, x)
+    act = torch.bmm(s, w_act.view(e, n * a, h).transpose(1, 2)).view(e, m, n, a)
+    own_action = act.gather(-1, x.actions.reshape(e, m, n, 1)).squeeze(-1)
+    return hist + own_action + torch.bmm(s, w_id.transpose(1, 2))
 
 
 def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor, torch.Tensor]:
@@ -233,25 +250,31 @@ def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor
     return w_act, w_id
 
 
-def _window_terms(layer: EnsembleLinear, x: AgentBlocks, per_agent: bool) -> torch.Tensor:
-    """Σ_w obs_{t-W+1+w, i} W_i,w for every window: [E, B, T', N, H] (per agent) or
-    [E, B, T', H] (summed over agents)."""
+def project_rows(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """Every non-zero observation (`AgentBlocks.alive_rows`) times its agent's weights of all
+    W window slots ([K, O] x [O, W*H] per member and agent), [K, W*H], slot-major."""
     e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, layer.out_features
     wb = layer.weight.view(e, n, x.block, h)
     w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
     w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
-    rows, counts, to_agent, to_sum = x.alive_rows()
+    rows, counts, _, _ = x.alive_rows()
     parts = [
         torch.mm(r, wt)
         for r, wt, k in zip(rows.split(counts), w_obs.unbind(0), counts, strict=True)
         if k
     ]
-    proj = torch.cat(parts) if parts else rows.new_zeros(0, w * h)
-    shape = (e, x.episodes, x.span, n) if per_agent else (e, x.episodes, x.span)
-    step = n if per_agent else 1
-    dest = (to_agent if per_agent else to_sum).unsqueeze(1) - step * torch.arange(
-        w, device=proj.device
-    )
+    return torch.cat(parts) if parts else rows.new_zeros(0, w * h)
+
+
+def _window_terms(
+    layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Σ_i Σ_w obs_{t-W+1+w, i} W_i,w for every window, [E, B, T', H]."""
+    e, w, h = x.shape[0], x.window, layer.out_features
+    proj = project_rows(layer, x) if proj is None else proj
+    _, _, _, to_sum = x.alive_rows()
+    shape = (e, x.episodes, x.span)
+    dest = to_sum.unsqueeze(1) - torch.arange(w, device=proj.device)
     buf = proj.new_zeros(math.prod(shape), h).index_add_(0, dest.reshape(-1), proj.view(-1, h))
     return buf.view(*shape, h)[:, :, w - 1 : w - 1 + x.steps]
 

@@ -1,6 +1,6 @@
 """The structured network inputs (the agents' `AgentInputs`, RDN's `ObsWindows` and
-`AgentBlocks`, `block_contributions`, LRP's per-agent sums) compute what the straightforward
-dense implementation computes.
+`AgentBlocks`, `block_preactivation`, LRP's per-agent sums by `block_dot`) compute what the
+straightforward dense implementation computes.
 
 The straightforward versions are kept here, as they were before the optimisation: agent
 inputs and windows by concatenation, the critic input by concatenating one-hots, LRP-ε over
