@@ -111,8 +111,14 @@ class BlockRelevance(LazyTensor):
         super().__init__(tuple(x.shape), x)
         self.x, self.per_agent, self.s1, self.w1, self.residual = x, per_agent, s1, w1, residual
         self.first_preactivation = first_preactivation
+        self.w1_version = w1._version  # shared with the critic's weight: no copy kept
 
     def materialise(self) -> torch.Tensor:
+        if self.w1._version != self.w1_version:
+            raise RuntimeError(
+                "the critic's first layer changed after this relevance was computed "
+                "(an optimiser step); compute lrp_epsilon again for its per-feature values"
+            )
         x = self.x.dense()
         relevance = x * torch.bmm(self.s1, self.w1.transpose(1, 2))
         if self.residual is not None:
@@ -143,8 +149,7 @@ def _lrp_blocks(
         out = a.detach().squeeze(-1)
         with torch.no_grad():
             per_agent = block_dot(first, x, s1, proj)
-        w1 = first.weight.detach().clone()
-        return BlockRelevance(x, per_agent, s1, w1, None, z1), out
+        return BlockRelevance(x, per_agent, s1, first.weight.detach(), None, z1), out
     with torch.no_grad():
         zs, acts = [z1], []
         for layer in mlp.layers[1:]:
@@ -166,8 +171,7 @@ def _lrp_blocks(
             weight = x.block_l1()
             share = _share(weight)
             per_agent = per_agent + residual.unsqueeze(-1) * share
-    w1 = first.weight.detach().clone()  # the critic may be updated before the values are used
-    return BlockRelevance(x, per_agent, s1, w1, residual, z1), out
+    return BlockRelevance(x, per_agent, s1, first.weight.detach(), residual, z1), out
 
 
 def _grad_x_input(mlp: MLP, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,30 +263,37 @@ def critic_all_actions(
         agent_rows = torch.arange(n, device=actions.device) * a
         taken_rows = (actions + agent_rows).view(e, m * n) + members * (n * a)
         taken = w_flat.reshape(e * n * a, h).index_select(0, taken_rows.view(-1))
-        base = z1.unsqueeze(2) - taken.view(e, m, n, h)  # the pre-activation without a_i
+        # one table of rows: the pre-activation without a_i, base [E*M*N, H], then w_flat
+        table = z1.new_empty(e * m * n + e * n * a, h)
+        base = table[: e * m * n].view(e, m, n, h)
+        torch.sub(z1.unsqueeze(2), taken.view(e, m, n, h), out=base)
+        table[e * m * n :] = w_flat.reshape(e * n * a, h)
         if keep is None:
             keep = torch.ones(e, m, n, a, dtype=torch.bool, device=actions.device)
         keep = keep.clone()  # the taken action's entry is Q_c(x)
         keep.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)
         q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
         out = q_x.expand(e, m, n, a).clone().view(e, m * n * a)
-        picked = [torch.nonzero(k.reshape(-1)).squeeze(-1) for k in keep.unbind(0)]
-        width = max((len(p) for p in picked), default=0)
+        member, mi, act = keep.view(e, m * n, a).nonzero().unbind(1)  # mi = m*N + i
+        counts = torch.bincount(member, minlength=e).tolist()
+        width = max(counts, default=0)
         if width == 0:
             return out.view(e, m, n, a)
-        rows = torch.zeros(e, width, dtype=torch.long, device=actions.device)
-        for member, p in enumerate(picked):  # pad every member to the same row count
-            rows[member, : len(p)] = p
-        mi = rows // a  # row (m*N + i)*A + a
-        ia = mi % n * a + rows % a
+        # pad every member to the same row count (its first entry repeated)
+        slot = torch.arange(width, device=actions.device).expand(e, width)
+        starts = torch.tensor([0, *counts[:-1]], device=actions.device).cumsum(0)
+        count = torch.tensor(counts, device=actions.device)
+        src = starts.view(e, 1) + torch.minimum(slot, (count - 1).clamp_min(0).view(e, 1))
+        src = src.clamp_max(len(mi) - 1)  # a member with no rows reads another's (unused)
+        mi, act = mi[src], act[src]  # [E, width]
         # z = base[m, i] + W_i,a for every picked row, as one sum of two looked-up rows of one
         # table (no intermediate [rows, H] tensors: on bane_vs_bane there are 10^5 rows)
-        table = torch.cat([base.reshape(e * m * n, h), w_flat.reshape(e * n * a, h)])
+        ia = mi % n * a + act
         pairs = torch.stack([mi + members * (m * n), ia + members * (n * a) + e * m * n], -1)
         z = F.embedding_bag(pairs.view(-1, 2), table, mode="sum").view(e, width, h)
         values = _upper_layers(mlp, z, in_place=True)  # [E, width]
-        for member, p in enumerate(picked):
-            out[member, p] = values[member, : len(p)]
+        for k, c in enumerate(counts):
+            out[k, mi[k, :c] * a + act[k, :c]] = values[k, :c]
     return out.view(e, m, n, a)
 
 

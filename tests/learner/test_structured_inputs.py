@@ -174,6 +174,42 @@ def test_lrp_of_agent_blocks_matches_lrp_of_the_dense_input(rule):
         _close(agent_relevance(rel, n).sum(-1), q)
 
 
+@pytest.mark.parametrize("window", [1, 4])
+def test_block_dot_is_each_agents_dense_contribution_dotted_with_s(window):
+    from learner.networks import block_dot
+
+    obs, actions = _batch(5)
+    a, n = 4, 4
+    x = agent_blocks(obs_history(obs, window)[:, :, 1:], actions[:, :, 1:], a, window)
+    dense = reference_critic_inputs(
+        reference_obs_history(obs, window)[:, :, 1:], actions[:, :, 1:], a
+    )
+    mlp = _mlp(2, dense.shape[-1], seed=2)
+    first = mlp.layers[0]
+    s = torch.randn(2, dense.shape[1], first.out_features)
+    e, m, d = dense.shape
+    w = first.weight.view(e, n, d // n, -1)  # agent i's block of rows
+    contrib = torch.einsum("emnb,enbh->emnh", dense.view(e, m, n, d // n), w)
+    with torch.no_grad():
+        _close(block_dot(first, x, s), (contrib * s.unsqueeze(2)).sum(-1))
+
+
+def test_block_relevance_refuses_dense_values_after_the_critic_changed():
+    obs, actions = _batch(6)
+    x = agent_blocks(obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4, 2)
+    mlp = _mlp(2, x.shape[-1])
+    kept, _ = lrp_epsilon(mlp, x)
+    before = kept.dense()  # computed while the weights are unchanged: kept as it is
+    rel, _ = lrp_epsilon(mlp, x)
+    with torch.no_grad():
+        mlp.layers[0].weight.add_(1.0)  # an optimiser step, in place
+    fresh, _ = lrp_epsilon(mlp, x)
+    assert not torch.allclose(fresh.dense(), before)
+    torch.testing.assert_close(kept.dense(), before)
+    with pytest.raises(RuntimeError, match="changed after this relevance was computed"):
+        rel.dense()
+
+
 def test_the_dense_path_is_taken_when_hist_is_not_a_window_view():
     obs, actions = _batch()
     hist = reference_obs_history(obs, 3)[:, :, :-1]
