@@ -222,6 +222,7 @@ class ObsWindows(LazyTensor):
         super().__init__(tuple(self.shape), obs)
         self.obs, self.window, self.start, self.steps = obs, window, start, self.shape[2]
         self._norms: list[torch.Tensor] = []  # shared by every slice of the same windows
+        self._alive: list[tuple] = []  # likewise
 
     def materialise(self) -> torch.Tensor:
         stop = self.start + self.steps
@@ -235,7 +236,7 @@ class ObsWindows(LazyTensor):
             return NotImplemented
         lo, hi, _ = slice(lo, hi).indices(self.steps)
         part = ObsWindows(self.obs, self.window, self.start + lo, max(hi - lo, 0))
-        part._norms = self._norms
+        part._norms, part._alive = self._norms, self._alive
         return part
 
     def padded_l1(self) -> torch.Tensor:
@@ -247,6 +248,22 @@ class ObsWindows(LazyTensor):
                 pad = l1.new_zeros(*l1.shape[:2], self.window - 1, l1.shape[-1])
                 self._norms.append(torch.cat([pad, l1], dim=2))
         return self._norms[0]
+
+    def alive_obs(self) -> tuple[torch.Tensor, list[int], tuple[torch.Tensor, ...]]:
+        """Every non-zero observation of obs, whichever windows it falls in (computed once for
+        all slices): (rows [K, O] sorted by (member, agent, episode, step); the number of rows
+        of each (e, i), e-major; their (e, i, b, step) indices)."""
+        if not self._alive:
+            with torch.no_grad():
+                e, b, tp, n, o = self.obs.shape
+                alive = obs_l1(self.obs) > 0  # [E, B, T_obs, N]
+                idx = alive.permute(0, 3, 1, 2).nonzero()  # sorted by (e, i, b, step)
+                ei, ni, bi, ui = idx.unbind(1)
+                counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
+                flat = ((ei * b + bi) * tp + ui) * n + ni
+                rows = self.obs.reshape(-1, o).index_select(0, flat)
+                self._alive.append((rows, counts, (ei, ni, bi, ui)))
+        return self._alive[0]
 
 
 class AgentBlocks(LazyTensor):
@@ -293,19 +310,14 @@ class AgentBlocks(LazyTensor):
         window_l1 = sum(l1[:, :, k : k + tp] for k in range(self.window))
         return (window_l1 + 2.0).reshape(l1.shape[0], -1, self.n_agents)
 
-    @property
-    def span(self) -> int:
-        """Time rows of the buffers `alive_rows` indexes: every window t = s - w a series row s
-        can fill, t in [-(W-1), T'+W-1), shifted by W-1 to start at 0."""
-        return self.steps + 2 * (self.window - 1)
-
     def alive_rows(self) -> tuple[torch.Tensor, list[int], torch.Tensor, torch.Tensor]:
-        """The non-zero observations, grouped by (member, agent), and where they go.
+        """The non-zero observations, grouped by (member, agent), and the windows they fill.
 
-        Returns (rows [K, O]; the number of rows of each (e, i) group, e-major; for each row,
-        the flat index of the window its slot 0 fills, t = s, in a buffer [E, B, span, N]
-        (`span`; slot w fills the index minus w*N); the same in a buffer [E, B, span]
-        summed over agents (minus w for slot w)). An all-zero observation (a dead agent,
+        Returns (rows [K, O] (`ObsWindows.alive_obs`, shared by every slice of the same
+        windows); the number of rows of each (e, i) group, e-major; for each row and window
+        slot w, [K, W], the flat index of the window it fills in a buffer [E, B, T', N] and in
+        one [E, B, T'] summed over agents, or the buffer's size (one extra row, never read)
+        where that window is outside these T' steps). An all-zero observation (a dead agent,
         padding, before the episode start) adds nothing to a linear map of x, so only these
         rows are multiplied."""
         if self._rows is None:
@@ -322,13 +334,17 @@ class AgentBlocks(LazyTensor):
         return ((member * n + agent) * a + self.actions).view(e, -1, n)
 
     def _find_rows(self) -> tuple:
-        e, b, _, n = self.series_l1().shape
-        idx = (self.series_l1() > 0).permute(0, 3, 1, 2).nonzero()  # sorted by (e, i, b, s)
-        ei, ni, bi, si = idx.unbind(1)
-        counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
-        rows = self.hist.obs[ei, bi, si + self.hist.start - (self.window - 1), ni]
-        window = (ei * b + bi) * self.span + si + self.window - 1
-        return rows, counts, window * n + ni, window
+        rows, counts, (ei, ni, bi, ui) = self.hist.alive_obs()
+        w, n, steps = self.window, self.n_agents, self.steps
+        # observation step u sits in window t = u - start + (W-1) - w at slot w
+        slots = torch.arange(w, device=rows.device)
+        t = (ui - self.hist.start + (w - 1)).unsqueeze(1) - slots  # [K, W]
+        inside = (t >= 0) & (t < steps)
+        window = (ei * self.episodes + bi).unsqueeze(1) * steps + t
+        size = ei.new_tensor(self.actions.shape[0] * self.episodes * steps)
+        to_sum = torch.where(inside, window, size)
+        to_agent = torch.where(inside, window * n + ni.unsqueeze(1), size * n)
+        return rows, counts, to_agent, to_sum
 
 
 def agent_blocks_dense(hist: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:

@@ -222,18 +222,14 @@ def block_dot(
     (`project_rows`) is dotted with s at the W windows it sits in and the sums are added into
     its agent's entries; the one-hot parts are s times the action and id rows."""
     e, m, _ = x.shape
-    n, w, a, h = x.n_agents, x.window, x.n_actions, layer.out_features
+    n, a, h = x.n_agents, x.n_actions, layer.out_features
     proj = project_rows(layer, x) if proj is None else proj
-    _, _, to_agent, to_sum = x.alive_rows()
-    shape = (e, x.episodes, x.span)
-    s_span = s.new_zeros(*shape, h)
-    s_span[:, :, w - 1 : w - 1 + x.steps] = s.view(e, x.episodes, x.steps, h)
-    slots = torch.arange(w, device=s.device)
-    g = s_span.view(-1, h).index_select(0, (to_sum.unsqueeze(1) - slots).view(-1))
+    _, _, to_agent, to_sum = x.alive_rows()  # [K, W] each; a window outside: the extra row
+    s_rows = torch.cat([s.reshape(-1, h), s.new_zeros(1, h)])
+    g = s_rows.index_select(0, to_sum.view(-1))  # s at the window each (row, slot) fills
     dots = (proj.view(-1, h) * g).sum(-1)  # [K*W]: row k's slot w dotted with its window
-    dest = (to_agent.unsqueeze(1) - n * slots).view(-1)
-    buf = s.new_zeros(math.prod(shape) * n).index_add_(0, dest, dots)
-    hist = buf.view(*shape, n)[:, :, w - 1 : w - 1 + x.steps].reshape(e, m, n)
+    buf = s.new_zeros(e * m * n + 1).index_add_(0, to_agent.view(-1), dots)
+    hist = buf[:-1].view(e, m, n)
     w_act, w_id = _onehot_weights(layer, x)
     act = torch.bmm(s, w_act.view(e, n * a, h).transpose(1, 2)).view(e, m, n, a)
     own_action = act.gather(-1, x.actions.reshape(e, m, n, 1)).squeeze(-1)
@@ -252,31 +248,58 @@ def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor
 
 def project_rows(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
     """Every non-zero observation (`AgentBlocks.alive_rows`) times its agent's weights of all
-    W window slots ([K, O] x [O, W*H] per member and agent), [K, W*H], slot-major."""
+    W window slots ([K, O] x [O, W*H] per member and agent), [K, W*H], slot-major
+    (differentiable in the layer's weight)."""
     e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, layer.out_features
     wb = layer.weight.view(e, n, x.block, h)
     w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
     w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
     rows, counts, _, _ = x.alive_rows()
-    parts = [
-        torch.mm(r, wt)
-        for r, wt, k in zip(rows.split(counts), w_obs.unbind(0), counts, strict=True)
-        if k
-    ]
-    return torch.cat(parts) if parts else rows.new_zeros(0, w * h)
+    return _GroupedProduct.apply(rows, w_obs, counts)
+
+
+class _GroupedProduct(torch.autograd.Function):
+    """rows [K, O] in consecutive groups of `counts` rows, group g times weights[g] [O, D]:
+    [K, D], each group's product written in place (no concatenation); the backward gives
+    the weights' gradient group by group (the rows get none)."""
+
+    @staticmethod
+    def forward(ctx, rows: torch.Tensor, weights: torch.Tensor, counts: list[int]):
+        out = rows.new_empty(rows.shape[0], weights.shape[-1])
+        start = 0
+        for g, k in enumerate(counts):
+            if k:
+                torch.mm(rows[start : start + k], weights[g], out=out[start : start + k])
+                start += k
+        ctx.save_for_backward(rows)
+        ctx.counts = counts
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (rows,) = ctx.saved_tensors
+        grad_w = grad.new_empty(len(ctx.counts), rows.shape[1], grad.shape[1])
+        start = 0
+        for g, k in enumerate(ctx.counts):
+            if k:
+                part = slice(start, start + k)
+                torch.mm(rows[part].t(), grad[part], out=grad_w[g])
+                start += k
+            else:
+                grad_w[g].zero_()
+        return None, grad_w, None
 
 
 def _window_terms(
     layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Σ_i Σ_w obs_{t-W+1+w, i} W_i,w for every window, [E, B, T', H]."""
-    e, w, h = x.shape[0], x.window, layer.out_features
+    e, h = x.shape[0], layer.out_features
     proj = project_rows(layer, x) if proj is None else proj
-    _, _, _, to_sum = x.alive_rows()
-    shape = (e, x.episodes, x.span)
-    dest = to_sum.unsqueeze(1) - torch.arange(w, device=proj.device)
-    buf = proj.new_zeros(math.prod(shape), h).index_add_(0, dest.reshape(-1), proj.view(-1, h))
-    return buf.view(*shape, h)[:, :, w - 1 : w - 1 + x.steps]
+    _, _, _, to_sum = x.alive_rows()  # [K, W]; a window outside these steps: the extra row
+    rows = e * x.episodes * x.steps
+    buf = proj.new_zeros(rows + 1, h).index_add_(0, to_sum.view(-1), proj.view(-1, h))
+    return buf[:-1].view(e, x.episodes, x.steps, h)
 
 
 class QMixer(nn.Module):

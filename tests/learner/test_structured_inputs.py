@@ -194,6 +194,18 @@ def test_block_dot_is_each_agents_dense_contribution_dotted_with_s(window):
         _close(block_dot(first, x, s), (contrib * s.unsqueeze(2)).sum(-1))
 
 
+def test_critic_gradients_match_when_an_agent_never_sees_anything():
+    obs, actions = _batch(7)
+    obs[1, :, :, 3] = 0.0  # member 1's agent 3: no rows at all (an empty group)
+    x = agent_blocks(obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4, 2)
+    dense = reference_critic_inputs(reference_obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4)
+    mlp = _mlp(2, dense.shape[-1], seed=3)
+    grads = torch.autograd.grad(mlp(x).pow(2).sum(), list(mlp.parameters()))
+    grads_ref = torch.autograd.grad(mlp(dense).pow(2).sum(), list(mlp.parameters()))
+    for g, g_ref in zip(grads, grads_ref, strict=True):
+        _close(g, g_ref)
+
+
 def test_block_relevance_refuses_dense_values_after_the_critic_changed():
     obs, actions = _batch(6)
     x = agent_blocks(obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4, 2)
