@@ -256,18 +256,9 @@ def critic_all_actions(
         h = z1.shape[-1]
         first = mlp.layers[0]
         w_act = first.weight.view(e, n, -1, h)[:, :, action_offset : action_offset + a]
-        w_flat = w_act.reshape(e, n * a, h)  # row i*A + a: agent i's action-a weights
-        # whole rows picked by index_select on [E*rows, H] (gather with an index expanded
-        # over H is several times slower)
+        w_flat = w_act.reshape(e * n * a, h)  # row (e*N + i)*A + a: agent i's action-a weights
+        table = torch.cat([z1.reshape(e * m, h), w_flat])  # rows looked up below
         members = torch.arange(e, device=actions.device).view(e, 1)
-        agent_rows = torch.arange(n, device=actions.device) * a
-        taken_rows = (actions + agent_rows).view(e, m * n) + members * (n * a)
-        taken = w_flat.reshape(e * n * a, h).index_select(0, taken_rows.view(-1))
-        # one table of rows: the pre-activation without a_i, base [E*M*N, H], then w_flat
-        table = z1.new_empty(e * m * n + e * n * a, h)
-        base = table[: e * m * n].view(e, m, n, h)
-        torch.sub(z1.unsqueeze(2), taken.view(e, m, n, h), out=base)
-        table[e * m * n :] = w_flat.reshape(e * n * a, h)
         if keep is None:
             keep = torch.ones(e, m, n, a, dtype=torch.bool, device=actions.device)
         keep = keep.clone()  # the taken action's entry is Q_c(x)
@@ -286,11 +277,15 @@ def critic_all_actions(
         src = starts.view(e, 1) + torch.minimum(slot, (count - 1).clamp_min(0).view(e, 1))
         src = src.clamp_max(len(mi) - 1)  # a member with no rows reads another's (unused)
         mi, act = mi[src], act[src]  # [E, width]
-        # z = base[m, i] + W_i,a for every picked row, as one sum of two looked-up rows of one
-        # table (no intermediate [rows, H] tensors: on bane_vs_bane there are 10^5 rows)
-        ia = mi % n * a + act
-        pairs = torch.stack([mi + members * (m * n), ia + members * (n * a) + e * m * n], -1)
-        z = F.embedding_bag(pairs.view(-1, 2), table, mode="sum").view(e, width, h)
+        # z = z1[m] - W_i,taken + W_i,a for every picked row, as one weighted sum of three
+        # looked-up rows of one table (no intermediate [rows, H] tensors: on bane_vs_bane
+        # there are 10^5 rows)
+        agent_row = e * m + (members * n + mi % n) * a  # agent i's first action row
+        taken = actions.reshape(e, m * n).gather(1, mi)
+        triples = torch.stack([mi // n + members * m, agent_row + taken, agent_row + act], -1)
+        signs = z1.new_tensor([1.0, -1.0, 1.0]).expand(e * width, 3)
+        z = F.embedding_bag(triples.view(-1, 3), table, mode="sum", per_sample_weights=signs)
+        z = z.view(e, width, h)
         values = _upper_layers(mlp, z, in_place=True)  # [E, width]
         for k, c in enumerate(counts):
             out[k, mi[k, :c] * a + act[k, :c]] = values[k, :c]
