@@ -197,20 +197,19 @@ class MLP(nn.Module):
 def block_preactivation(
     layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """layer(x) for an AgentBlocks x, [E, M, H] (differentiable in the layer's weight).
+    """layer(x) for an AgentBlocks x, [E, M, H] (differentiable in the layer's weight and
+    bias unless `proj` is given).
 
     Agent i's block contributes Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i],
     where W_i,w are the rows of agent i's window slot w. Every non-zero observation is
     multiplied once by the weights of all W slots (`project_rows`; pass `proj` if the caller
     has it) and added into the W windows it sits in; all-zero observations (dead agents,
     padding) are skipped, and the one-hots are row look-ups. The dense product x @ W
-    multiplies each observation W times, mostly zeros."""
-    e, m, _ = x.shape
-    h = layer.out_features
-    hist = _window_terms(layer, x, proj).reshape(e, m, h)
-    w_act, w_id = _onehot_weights(layer, x)
-    actions = F.embedding_bag(x.action_index().view(e * m, -1), w_act, mode="sum")
-    return hist + actions.view(e, m, h) + (w_id.sum(1) + layer.bias.squeeze(1)).unsqueeze(1)
+    multiplies each observation W times, mostly zeros. The backward (`_BlockLayer`) writes
+    the weight's gradient block by block into one tensor."""
+    if proj is None:
+        return _BlockLayer.apply(layer.weight, layer.bias, x)
+    return _preactivation(layer.weight, layer.bias, x, proj)
 
 
 def block_dot(
@@ -230,76 +229,99 @@ def block_dot(
     dots = (proj.view(-1, h) * g).sum(-1)  # [K*W]: row k's slot w dotted with its window
     buf = s.new_zeros(e * m * n + 1).index_add_(0, to_agent.view(-1), dots)
     hist = buf[:-1].view(e, m, n)
-    w_act, w_id = _onehot_weights(layer, x)
+    w_act, w_id = _onehot_weights(layer.weight, x)
     act = torch.bmm(s, w_act.view(e, n * a, h).transpose(1, 2)).view(e, m, n, a)
     own_action = act.gather(-1, x.actions.reshape(e, m, n, 1)).squeeze(-1)
     return hist + own_action + torch.bmm(s, w_id.transpose(1, 2))
 
 
-def _onehot_weights(layer: EnsembleLinear, x: AgentBlocks) -> tuple[torch.Tensor, torch.Tensor]:
+def project_rows(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
+    """Every non-zero observation (`AgentBlocks.alive_rows`) times its agent's weights of all
+    W window slots ([K, O] x [O, W*H] per member and agent), [K, W*H], slot-major (no
+    gradient)."""
+    with torch.no_grad():
+        return _project(layer.weight, x)
+
+
+def _project(weight: torch.Tensor, x: AgentBlocks) -> torch.Tensor:
+    e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, weight.shape[-1]
+    wb = weight.view(e, n, x.block, h)
+    w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
+    w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
+    rows, counts, _, _ = x.alive_rows()
+    out = rows.new_empty(rows.shape[0], w * h)
+    start = 0
+    for g, k in enumerate(counts):  # each group's product written in place
+        if k:
+            torch.mm(rows[start : start + k], w_obs[g], out=out[start : start + k])
+            start += k
+    return out
+
+
+def _preactivation(
+    weight: torch.Tensor, bias: torch.Tensor, x: AgentBlocks, proj: torch.Tensor
+) -> torch.Tensor:
+    """The first layer's pre-activation [E, M, H] from the projected rows `proj`."""
+    e, m, _ = x.shape
+    h = weight.shape[-1]
+    _, _, _, to_sum = x.alive_rows()  # [K, W]; a window outside these steps: the extra row
+    hist = proj.new_zeros(e * m + 1, h).index_add_(0, to_sum.view(-1), proj.view(-1, h))
+    w_act, w_id = _onehot_weights(weight, x)
+    actions = F.embedding_bag(x.action_index().view(e * m, -1), w_act, mode="sum")
+    const = (w_id.sum(1) + bias.squeeze(1)).unsqueeze(1)  # the ids and the bias, [E, 1, H]
+    return hist[:-1].view(e, m, h) + actions.view(e, m, h) + const
+
+
+def _onehot_weights(weight: torch.Tensor, x: AgentBlocks) -> tuple[torch.Tensor, torch.Tensor]:
     """The action one-hot rows as [E*N*A, H] (`AgentBlocks.action_index` order) and each
     agent's own id row [E, N, H]."""
     e, n, a, wo = x.shape[0], x.n_agents, x.n_actions, x.window * x.obs_dim
-    wb = layer.weight.view(e, n, x.block, layer.out_features)
+    wb = weight.view(e, n, x.block, weight.shape[-1])
     w_act = wb[:, :, wo : wo + a].reshape(e * n * a, -1)
     w_id = torch.diagonal(wb[:, :, wo + a :], dim1=1, dim2=2).transpose(1, 2)
     return w_act, w_id
 
 
-def project_rows(layer: EnsembleLinear, x: AgentBlocks) -> torch.Tensor:
-    """Every non-zero observation (`AgentBlocks.alive_rows`) times its agent's weights of all
-    W window slots ([K, O] x [O, W*H] per member and agent), [K, W*H], slot-major
-    (differentiable in the layer's weight)."""
-    e, n, w, o, h = x.shape[0], x.n_agents, x.window, x.obs_dim, layer.out_features
-    wb = layer.weight.view(e, n, x.block, h)
-    w_obs = wb[:, :, : w * o].reshape(e, n, w, o, h).permute(0, 1, 3, 2, 4)
-    w_obs = w_obs.reshape(e * n, o, w * h)  # agent i's [O, W*H] for each member (one copy)
-    rows, counts, _, _ = x.alive_rows()
-    return _GroupedProduct.apply(rows, w_obs, counts)
-
-
-class _GroupedProduct(torch.autograd.Function):
-    """rows [K, O] in consecutive groups of `counts` rows, group g times weights[g] [O, D]:
-    [K, D], each group's product written in place (no concatenation); the backward gives
-    the weights' gradient group by group (the rows get none)."""
+class _BlockLayer(torch.autograd.Function):
+    """`block_preactivation` with its backward written out: the gradient of the weight
+    [E, N*block, H] is filled block by block in one tensor (each agent's observation rows by
+    one product per agent, its action rows by index_add, its id row by a sum) instead of
+    autograd's one full-size tensor per slice of the weight."""
 
     @staticmethod
-    def forward(ctx, rows: torch.Tensor, weights: torch.Tensor, counts: list[int]):
-        out = rows.new_empty(rows.shape[0], weights.shape[-1])
-        start = 0
-        for g, k in enumerate(counts):
-            if k:
-                torch.mm(rows[start : start + k], weights[g], out=out[start : start + k])
-                start += k
-        ctx.save_for_backward(rows)
-        ctx.counts = counts
-        return out
+    def forward(ctx, weight: torch.Tensor, bias: torch.Tensor, x: AgentBlocks) -> torch.Tensor:
+        ctx.x = x
+        return _preactivation(weight, bias, x, _project(weight, x))
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        (rows,) = ctx.saved_tensors
-        grad_w = grad.new_empty(len(ctx.counts), rows.shape[1], grad.shape[1])
+        x = ctx.x
+        e, m, h = grad.shape
+        n, w, o, a, block = x.n_agents, x.window, x.obs_dim, x.n_actions, x.block
+        rows, counts, _, to_sum = x.alive_rows()
+        flat = torch.cat([grad.reshape(e * m, h), grad.new_zeros(1, h)])
+        g = flat.index_select(0, to_sum.view(-1)).view(-1, w * h)  # each (row, slot)'s window
+        g_obs = grad.new_empty(e * n, o, w * h)
         start = 0
-        for g, k in enumerate(ctx.counts):
+        for group, k in enumerate(counts):
             if k:
                 part = slice(start, start + k)
-                torch.mm(rows[part].t(), grad[part], out=grad_w[g])
+                torch.mm(rows[part].t(), g[part], out=g_obs[group])
                 start += k
             else:
-                grad_w[g].zero_()
-        return None, grad_w, None
-
-
-def _window_terms(
-    layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
-) -> torch.Tensor:
-    """Σ_i Σ_w obs_{t-W+1+w, i} W_i,w for every window, [E, B, T', H]."""
-    e, h = x.shape[0], layer.out_features
-    proj = project_rows(layer, x) if proj is None else proj
-    _, _, _, to_sum = x.alive_rows()  # [K, W]; a window outside these steps: the extra row
-    rows = e * x.episodes * x.steps
-    buf = proj.new_zeros(rows + 1, h).index_add_(0, to_sum.view(-1), proj.view(-1, h))
-    return buf[:-1].view(e, x.episodes, x.steps, h)
+                g_obs[group].zero_()
+        grad_w = grad.new_zeros(e, n, block, h)
+        grad_w[:, :, : w * o] = g_obs.view(e, n, o, w, h).transpose(2, 3).reshape(e, n, w * o, h)
+        # action rows: (e*N + i)*A + a (action_index) -> row (e*N + i)*block + W*O + a
+        index = x.action_index()  # [E, M, N]
+        index = index // a * block + w * o + index % a
+        src, dest = grad.reshape(e * m, h), grad_w.view(-1, h)
+        for i in range(n):
+            dest.index_add_(0, index[:, :, i].reshape(-1), src)
+        total = grad.sum(1)  # [E, H]: every row holds each agent's id one-hot
+        agents = torch.arange(n, device=grad.device)
+        grad_w[:, agents, w * o + a + agents] = total.unsqueeze(1)
+        return grad_w.view(e, n * block, h), total.unsqueeze(1), None
 
 
 class QMixer(nn.Module):
