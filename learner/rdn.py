@@ -284,7 +284,8 @@ class RDNLearner(AgentCriticLearner):
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
         q_alt = critic_all_actions(self.critic, *args, a, trained.view(e, b * t, n, a), first)
-        return shares.unsqueeze(-1) + q_alt.view(e, b, t, n, a) - q_tot.view(e, b, t, 1, 1)
+        every = q_alt.view(e, b, t, n, a).sub_(q_tot.view(e, b, t, 1, 1))  # in place: fresh
+        return every.add_(shares.unsqueeze(-1))
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
