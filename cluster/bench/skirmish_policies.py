@@ -2,6 +2,7 @@
 
     python -m cluster.bench.skirmish_policies --episodes 200 --seeds 0 1 2 \
         --out results/skirmish/policies.json
+    python -m cluster.bench.skirmish_policies --maps bane_z0 bane_z5 bane_z30 --out FILE
 
 Compares "banelings charge, zerglings step back" (bane_charge) with "everyone attacks the
 nearest" (nearest) on bane_vs_bane, its redundancy variants (bane_med, bane_small) and
@@ -23,8 +24,17 @@ from actors.envs.skirmish import make_skirmish_vec
 from actors.envs.skirmish.scripts import POLICIES, evaluate
 
 BANE_MAPS = ["bane_vs_bane", "bane_med", "bane_small", "bane_no_z"]
-CASES = [(m, p) for m in BANE_MAPS for p in ("bane_charge", "nearest", "random")]
-CASES += [(m, p) for m in ("3m", "8m", "2s3z") for p in ("focus_fire", "nearest", "random")]
+SANITY_MAPS = ["3m", "8m", "2s3z"]
+
+
+def cases(maps: list[str]) -> list[tuple[str, str]]:
+    """(map, policy) pairs: bane_charge, nearest and random on baneling maps (bane_*, e.g.
+    the generated bane_z<N>), focus_fire, nearest and random on the others."""
+    out = []
+    for m in maps:
+        first = "bane_charge" if m.startswith("bane") else "focus_fire"
+        out += [(m, p) for p in (first, "nearest", "random")]
+    return out
 
 
 def run_case(map_name: str, policy: str, episodes: int, seeds: list[int]) -> dict:
@@ -44,8 +54,14 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=200, help="episodes per seed")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--maps",
+        nargs="+",
+        default=BANE_MAPS + SANITY_MAPS,
+        help="skirmish map names (default: the four Table 5.1 maps and 3m, 8m, 2s3z)",
+    )
     a = p.parse_args()
-    rows = [run_case(m, pol, a.episodes, a.seeds) for m, pol in CASES]
+    rows = [run_case(m, pol, a.episodes, a.seeds) for m, pol in cases(a.maps)]
     record = {
         "command": " ".join(["python", *sys.argv]),
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
