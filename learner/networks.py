@@ -197,8 +197,8 @@ class MLP(nn.Module):
 def block_preactivation(
     layer: EnsembleLinear, x: AgentBlocks, proj: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """layer(x) for an AgentBlocks x, [E, M, H] (differentiable in the layer's weight and
-    bias unless `proj` is given).
+    """layer(x) for an AgentBlocks x, [E, M, H], differentiable in the layer's weight and bias
+    (with `proj` given, for use without gradients: nothing flows back through `proj`).
 
     Agent i's block contributes Σ_w obs_{t-W+1+w, i} W_i,w + W_i,action[a_i] + W_i,id[i],
     where W_i,w are the rows of agent i's window slot w. Every non-zero observation is
