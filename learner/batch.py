@@ -108,6 +108,20 @@ def obs_l1(obs: torch.Tensor) -> torch.Tensor:
     return norms
 
 
+def nonzero_obs(
+    obs: torch.Tensor, order: tuple[int, int, int, int]
+) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    """The observations of obs [E, B, T', N, O] that are not all zero (dead agents and padding
+    are), sorted by the axes of [E, B, T', N] taken in `order` (e.g. (0, 2, 1, 3): member,
+    step, episode, agent): (rows [K, O], their (e, b, t, i) indices)."""
+    with torch.no_grad():
+        _, b, tp, n, o = obs.shape
+        idx = (obs_l1(obs) > 0).permute(*order).nonzero()
+        ei, bi, ti, ni = (idx[:, order.index(axis)] for axis in range(4))
+        rows = obs.reshape(-1, o).index_select(0, ((ei * b + bi) * tp + ti) * n + ni)
+    return rows, (ei, bi, ti, ni)
+
+
 def agent_inputs(obs: torch.Tensor, actions: torch.Tensor, n_actions: int) -> torch.Tensor:
     """Per-agent network inputs for every step: own obs, last action one-hot, id one-hot.
 
@@ -158,16 +172,12 @@ class AgentInputs(LazyTensor):
         a linear map): (rows [K, O] grouped by member, each member's count, each row's flat
         index in [E, T', B, N] (time_major) or [E, B, T', N])."""
         if time_major not in self._rows:
-            with torch.no_grad():
-                alive = obs_l1(self.obs) > 0  # [E, B, T', N]
-                alive = alive.transpose(1, 2) if time_major else alive
-                idx = alive.nonzero()  # sorted by member
-                counts = torch.bincount(idx[:, 0], minlength=alive.shape[0]).tolist()
-                ei, i1, i2, ni = idx.unbind(1)
-                bi, ti = (i2, i1) if time_major else (i1, i2)
-                rows = self.obs[ei, bi, ti, ni]
-                _, d1, d2, n = alive.shape
-                self._rows[time_major] = (rows, counts, ((ei * d1 + i1) * d2 + i2) * n + ni)
+            e, b, tp, n, _ = self.obs.shape
+            order = (0, 2, 1, 3) if time_major else (0, 1, 2, 3)
+            rows, (ei, bi, ti, ni) = nonzero_obs(self.obs, order)  # sorted by member
+            counts = torch.bincount(ei, minlength=e).tolist()
+            flat = ((ei * tp + ti) * b + bi) if time_major else ((ei * b + bi) * tp + ti)
+            self._rows[time_major] = (rows, counts, flat * n + ni)
         return self._rows[time_major]
 
     def onehot_index(self, time_major: bool) -> torch.Tensor:
@@ -254,15 +264,10 @@ class ObsWindows(LazyTensor):
         all slices): (rows [K, O] sorted by (member, agent, episode, step); the number of rows
         of each (e, i), e-major; their (e, i, b, step) indices)."""
         if not self._alive:
-            with torch.no_grad():
-                e, b, tp, n, o = self.obs.shape
-                alive = obs_l1(self.obs) > 0  # [E, B, T_obs, N]
-                idx = alive.permute(0, 3, 1, 2).nonzero()  # sorted by (e, i, b, step)
-                ei, ni, bi, ui = idx.unbind(1)
-                counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
-                flat = ((ei * b + bi) * tp + ui) * n + ni
-                rows = self.obs.reshape(-1, o).index_select(0, flat)
-                self._alive.append((rows, counts, (ei, ni, bi, ui)))
+            e, n = self.obs.shape[0], self.obs.shape[3]
+            rows, (ei, bi, ui, ni) = nonzero_obs(self.obs, (0, 3, 1, 2))
+            counts = torch.bincount(ei * n + ni, minlength=e * n).tolist()
+            self._alive.append((rows, counts, (ei, ni, bi, ui)))
         return self._alive[0]
 
 

@@ -273,12 +273,11 @@ def critic_all_actions(
         width = max(counts, default=0)
         if width == 0:
             return out.view(e, m, n, a)
-        # pad every member to the same row count (its first entry repeated)
+        # pad every member to the same row count with the first row (never written back)
         slot = torch.arange(width, device=actions.device).expand(e, width)
-        starts = torch.tensor([0, *counts[:-1]], device=actions.device).cumsum(0)
-        count = torch.tensor(counts, device=actions.device)
-        src = starts.view(e, 1) + torch.minimum(slot, (count - 1).clamp_min(0).view(e, 1))
-        src = src.clamp_max(len(mi) - 1)  # a member with no rows reads another's (unused)
+        starts = torch.tensor([0, *counts[:-1]], device=actions.device).cumsum(0).view(e, 1)
+        count = torch.tensor(counts, device=actions.device).view(e, 1)
+        src = torch.where(slot < count, starts + slot, 0)
         mi, act = mi[src], act[src]  # [E, width]
         # z = z1[m] - W_i,taken + W_i,a for every picked row, as one weighted sum of three
         # looked-up rows of one table (no intermediate [rows, H] tensors: on bane_vs_bane
