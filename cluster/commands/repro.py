@@ -195,7 +195,11 @@ def _register_curves(
         help=f"seeds per algorithm and env, batched in one set of tensors ({default_seeds})",
     )
     m.add_argument(
-        "--t-max", type=int, default=None, help="env steps per run (default: the env's YAML)"
+        "--t-max",
+        type=int,
+        default=None,
+        help="env steps per run (default: the env's YAML); with --summarise-only, each pair's "
+        "evaluations up to its first at or past T_MAX",
     )
     m.add_argument(
         "--test-interval",
@@ -257,7 +261,7 @@ def cmd_curves(
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     if args.summarise_only:
-        curves = repro_curves.load_evals(out / "evals", algos, envs)
+        curves = repro_curves.load_evals(out / "evals", algos, envs, until=args.t_max)
         envs = [g for g in envs if any(c.env == g for c in curves)]
         if not curves:
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")

@@ -172,8 +172,12 @@ def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None
     os.replace(tmp, folder)
 
 
-def load_evals(log_dir: Path, algos: list[str], envs: list[str]) -> list[Curve]:
-    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped)."""
+def load_evals(
+    log_dir: Path, algos: list[str], envs: list[str], until: int | None = None
+) -> list[Curve]:
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped).
+    With `until`, each curve ends at its first evaluation at or past `until` env steps, so
+    that runs of different lengths are summarised at one budget."""
     curves = []
     for env in envs:
         for algo in algos:
@@ -181,6 +185,9 @@ def load_evals(log_dir: Path, algos: list[str], envs: list[str]) -> list[Curve]:
             if not path.exists() or not path.read_text().strip():
                 continue
             rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+            if until is not None:
+                past = [i for i, r in enumerate(rows) if r["t_env"] >= until]
+                rows = rows[: past[0] + 1] if past else rows
             diag = [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows]
             curves.append(
                 Curve(

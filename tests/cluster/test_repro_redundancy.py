@@ -62,6 +62,36 @@ def test_final_stats_use_the_last_ten_evaluations():
     assert got["iql"]["per_seed"] == [[0.0, 0.5]] and got["iql"]["zerglings"] == [10]
 
 
+def test_summarise_only_with_t_max_cuts_every_pair_at_one_budget(tmp_path, capsys):
+    # a 100k-step log every 10k and a 40k-step log every 5k, summarised at 40k steps
+    evals = tmp_path / "evals"
+    evals.mkdir()
+    logs = {
+        "skirmish-bane_small__vdn": [
+            (t, 1.0 if t > 40_500 else 0.0) for t in range(500, 100_501, 10_000)
+        ],
+        "skirmish-bane_med__vdn": [(t, 0.5) for t in range(400, 40_401, 5_000)],
+    }
+    for name, rows in logs.items():
+        lines = [
+            json.dumps({"t_env": t, "won": [w, w], "returns": [w, w], "wall_s": t / 100})
+            for t, w in rows
+        ]
+        (evals / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
+    argv = ["repro", "redundancy", "--envs", "skirmish/bane_small,skirmish/bane_med"]
+    argv += ["--algos", "vdn", "--out", str(tmp_path), "--summarise-only"]
+    assert main([*argv, "--t-max", "40000"]) == 0
+    cut = json.loads((tmp_path / "summary.json").read_text())
+    small = cut["skirmish/bane_small"]["vdn"]
+    assert small["t_env"] == 40_500 and small["wall_s"] == 405.0  # first evaluation past 40k
+    assert small["median_win_rate_last10"] == 0.0  # the wins after 40.5k are cut off
+    assert cut["skirmish/bane_med"]["vdn"]["t_env"] == 40_400  # shorter than the cut: all of it
+    assert cut["redundancy"]["curves"]["skirmish/bane_small"]["vdn"]["t_env"][-1] == 40_500
+    assert main(argv) == 0
+    whole = json.loads((tmp_path / "summary.json").read_text())["skirmish/bane_small"]["vdn"]
+    assert whole["t_env"] == 100_500 and whole["median_win_rate_last10"] == 0.6
+
+
 @pytest.mark.parametrize("bad", ["x", "5,-1", "65"])
 def test_bad_zerglings_exit_2(bad, capsys, tmp_path):
     assert main(["repro", "redundancy", "--zerglings", bad, "--out", str(tmp_path)]) == 2
