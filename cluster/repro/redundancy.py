@@ -11,7 +11,9 @@ module names the maps and algorithms, turns `--zerglings 0,5,...` into generated
 * redundancy_variance.png (Fig. 5.7): the variance of the win rate across seeds;
 * redundancy_p75.png, redundancy_p25.png (Figs. 5.8, 5.9): the 75th and 25th percentiles;
 * redundancy_final.png (not in the seed): the final win rate (each seed's mean over its last
-  10 evaluations; median and 25-75% over seeds) against the number of allied zerglings.
+  10 evaluations; median and 25-75% over seeds) against the number of allied zerglings, a
+  line through the Table 5.1 maps and open squares for the generated ones; beside it the
+  final return the same way.
 
 Maps are ordered from the most redundant zerglings to the fewest, as in the seed's figures.
 `summary.json` gets a "redundancy" entry with every number these figures draw.
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from actors.envs.skirmish.maps import BANE_VARIANT_MAX, builtin_map
+from actors.envs.skirmish.maps import BANE_VARIANT, BANE_VARIANT_MAX, builtin_map
 from cluster.errors import UsageError
 from cluster.repro import smac as repro_smac
 from cluster.repro.curves import LAST, Curve
@@ -43,6 +45,7 @@ STATS = {  # file suffix -> (panel y label, statistic over seeds at each evaluat
     "p75": ("75th percentile win rate", lambda w: np.percentile(w, 75, axis=1)),
     "p25": ("25th percentile win rate", lambda w: np.percentile(w, 25, axis=1)),
 }
+LINE_STATS = ("median", "p25", "p75")  # the final chart's points and bars
 
 
 def zergling_envs(spec: str) -> list[str]:
@@ -66,6 +69,11 @@ def zerglings_of(env: str) -> int:
     return sum(g.count for g in spec.allies if g.type == "zergling")
 
 
+def generated(env: str) -> bool:
+    """A map of `--zerglings` (`skirmish/bane_z<N>`), not one of Table 5.1's files."""
+    return BANE_VARIANT.fullmatch(env.split("/", 1)[1]) is not None
+
+
 def ordered(envs: list[str]) -> list[str]:
     """Most allied zerglings first (the seed's left-to-right order); ties keep their order."""
     return sorted(envs, key=lambda g: -zerglings_of(g))
@@ -83,22 +91,27 @@ def curve_stats(c: Curve) -> dict:
 
 def final_stats(curves: list[Curve], envs: list[str]) -> dict:
     """Per algo, against the number of zerglings: each seed's mean win rate over its last
-    LAST evaluations, and their median and 25th / 75th percentiles over seeds."""
+    LAST evaluations, and their median and 25th / 75th percentiles over seeds; the same for
+    the return under `return_*` (it separates the algorithms while none wins yet)."""
     out: dict = {}
     for env in ordered(envs):
         for c in curves:
             if c.env != env:
                 continue
-            per_seed = np.asarray(c.won, dtype=float)[-LAST:].mean(axis=0)
-            cell = out.setdefault(
-                c.algo, {"env": [], "zerglings": [], "median": [], "p25": [], "p75": []}
-            )
+            cell = out.setdefault(c.algo, {"env": [], "generated": [], "zerglings": []})
             cell["env"].append(env)
+            cell["generated"].append(generated(env))
             cell["zerglings"].append(zerglings_of(env))
-            cell["median"].append(round(float(np.median(per_seed)), 4))
-            cell["p25"].append(round(float(np.percentile(per_seed, 25)), 4))
-            cell["p75"].append(round(float(np.percentile(per_seed, 75)), 4))
-            cell.setdefault("per_seed", []).append([round(float(v), 4) for v in per_seed])
+            for prefix, values in (("", c.won), ("return_", c.returns)):
+                per_seed = np.asarray(values, dtype=float)[-LAST:].mean(axis=0)
+                for key, v in (
+                    ("median", np.median(per_seed)),
+                    ("p25", np.percentile(per_seed, 25)),
+                    ("p75", np.percentile(per_seed, 75)),
+                ):
+                    cell.setdefault(prefix + key, []).append(round(float(v), 4))
+                rounded = [round(float(v), 4) for v in per_seed]
+                cell.setdefault(prefix + "per_seed", []).append(rounded)
     return out
 
 
@@ -156,20 +169,38 @@ def _plot_final(final: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for algo, s in final.items():
-        x = np.asarray(s["zerglings"], dtype=float)
-        order = np.argsort(x, kind="stable")
-        med = np.asarray(s["median"])[order]
-        lo = med - np.asarray(s["p25"])[order]
-        hi = np.asarray(s["p75"])[order] - med
-        ax.errorbar(x[order], med, yerr=[lo, hi], marker="o", capsize=3, label=algo)
-    ax.set_xlabel("allied zerglings (the enemy: 20 zerglings + 4 banelings)")
-    ax.set_ylabel(f"final win rate (last {LAST} evaluations)")
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("final win rate: median over seeds, bars 25-75%")
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    for ax, prefix, label in ((axes[0], "", "win rate"), (axes[1], "return_", "return")):
+        for algo, s in final.items():
+            gen = np.asarray(s["generated"], dtype=bool)
+            # a line through the Table 5.1 maps; generated variants as open squares beside
+            # it (bane_z0 and bane_no_z both have 0 zerglings), unless only generated ones
+            line = ~gen if (~gen).any() else gen
+            color = None
+            for keep, marker in ((line, "o"), (~line, "s")):
+                if not keep.any():
+                    continue
+                x = np.asarray(s["zerglings"], dtype=float)[keep]
+                order = np.argsort(x, kind="stable")
+                med, lo, hi = (np.asarray(s[prefix + k])[keep][order] for k in LINE_STATS)
+                bars = ax.errorbar(
+                    x[order],
+                    med,
+                    yerr=[med - lo, hi - med],
+                    capsize=3,
+                    color=color,
+                    marker=marker,
+                    ls="-" if marker == "o" else "none",
+                    mfc="none" if marker == "s" else None,
+                    label=algo if color is None else f"{algo}, generated bane_z<N>",
+                )
+                color = bars.lines[0].get_color()
+        ax.set_xlabel("allied zerglings (the enemy: 20 zerglings + 4 banelings)")
+        ax.set_ylabel(f"final {label} (last {LAST} evaluations)")
+        ax.grid(alpha=0.3)
+        ax.set_title(f"final {label}: median over seeds, bars 25-75%")
+    axes[0].set_ylim(-0.02, 1.02)
+    axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

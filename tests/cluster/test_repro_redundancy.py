@@ -58,8 +58,16 @@ def test_figures_and_their_numbers(tmp_path):
 
 def test_final_stats_use_the_last_ten_evaluations():
     won = [[1.0, 1.0]] * 5 + [[0.0, 0.5]] * 10
-    got = final_stats([_curve("iql", "skirmish/bane_small", won)], ["skirmish/bane_small"])
-    assert got["iql"]["per_seed"] == [[0.0, 0.5]] and got["iql"]["zerglings"] == [10]
+    curves = [_curve("iql", g, won) for g in ("skirmish/bane_small", "skirmish/bane_z5")]
+    got = final_stats(curves, ["skirmish/bane_small", "skirmish/bane_z5"])
+    assert got["iql"]["per_seed"] == [[0.0, 0.5]] * 2 and got["iql"]["zerglings"] == [10, 5]
+    assert got["iql"]["generated"] == [False, True]  # drawn apart from Table 5.1's maps
+    # returns the same way: seed 0 returns 4 then 10, seed 1 always 6
+    rets = [[4.0, 6.0]] * 5 + [[10.0, 6.0]] * 10
+    c = Curve("vdn", "skirmish/bane_med", [1000 * (i + 1) for i in range(15)], won, rets, 1.0)
+    got = final_stats([c], ["skirmish/bane_med"])["vdn"]
+    assert got["return_per_seed"] == [[10.0, 6.0]] and got["return_median"] == [8.0]
+    assert got["return_p25"] == [7.0] and got["return_p75"] == [9.0]
 
 
 def test_summarise_only_with_t_max_cuts_every_pair_at_one_budget(tmp_path, capsys):
