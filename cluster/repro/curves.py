@@ -186,8 +186,8 @@ def load_evals(
                 continue
             rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
             if until is not None:
-                past = [i for i, r in enumerate(rows) if r["t_env"] >= until]
-                rows = rows[: past[0] + 1] if past else rows
+                end = next((i for i, r in enumerate(rows) if r["t_env"] >= until), len(rows) - 1)
+                rows = rows[: end + 1]
             diag = [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows]
             curves.append(
                 Curve(

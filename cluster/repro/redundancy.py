@@ -45,7 +45,7 @@ STATS = {  # file suffix -> (panel y label, statistic over seeds at each evaluat
     "p75": ("75th percentile win rate", lambda w: np.percentile(w, 75, axis=1)),
     "p25": ("25th percentile win rate", lambda w: np.percentile(w, 25, axis=1)),
 }
-LINE_STATS = ("median", "p25", "p75")  # the final chart's points and bars
+LINE_STATS = {"median": 50, "p25": 25, "p75": 75}  # final chart: key -> percentile over seeds
 
 
 def zergling_envs(spec: str) -> list[str]:
@@ -104,12 +104,9 @@ def final_stats(curves: list[Curve], envs: list[str]) -> dict:
             cell["zerglings"].append(zerglings_of(env))
             for prefix, values in (("", c.won), ("return_", c.returns)):
                 per_seed = np.asarray(values, dtype=float)[-LAST:].mean(axis=0)
-                for key, v in (
-                    ("median", np.median(per_seed)),
-                    ("p25", np.percentile(per_seed, 25)),
-                    ("p75", np.percentile(per_seed, 75)),
-                ):
-                    cell.setdefault(prefix + key, []).append(round(float(v), 4))
+                for key, q in LINE_STATS.items():
+                    v = round(float(np.percentile(per_seed, q)), 4)
+                    cell.setdefault(prefix + key, []).append(v)
                 rounded = [round(float(v), 4) for v in per_seed]
                 cell.setdefault(prefix + "per_seed", []).append(rounded)
     return out

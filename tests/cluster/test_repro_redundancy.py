@@ -70,7 +70,7 @@ def test_final_stats_use_the_last_ten_evaluations():
     assert got["return_p25"] == [7.0] and got["return_p75"] == [9.0]
 
 
-def test_summarise_only_with_t_max_cuts_every_pair_at_one_budget(tmp_path, capsys):
+def test_summarise_only_with_t_max_cuts_every_pair_at_one_budget(tmp_path):
     # a 100k-step log every 10k and a 40k-step log every 5k, summarised at 40k steps
     evals = tmp_path / "evals"
     evals.mkdir()
