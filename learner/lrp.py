@@ -46,7 +46,8 @@ def _share(weight: torch.Tensor) -> torch.Tensor:
 
 
 def _stabilise(z: torch.Tensor, eps: float) -> torch.Tensor:
-    return z + eps * torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    """z + ε·sign(z), with sign(0) = +1 (two passes over z, not six)."""
+    return torch.where(z >= 0, eps, -eps).add_(z)
 
 
 def lrp_epsilon(

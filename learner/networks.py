@@ -212,23 +212,36 @@ def block_preactivation(
     return _preactivation(layer.weight, layer.bias, x, proj)
 
 
+# block_dot builds each agent's first-layer contribution c when the live (row, window slot)
+# pairs are at least this many times the (row, agent) entries of c
+_BUILD_C = 1.5
+
+
 def block_dot(
     layer: EnsembleLinear, x: AgentBlocks, s: torch.Tensor, proj: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Σ_h c_ih s_h for every row and agent, [E, M, N], where c_i [E, M, H] is agent i's
     block's part of `block_preactivation(layer, x)` (without the bias) and s [E, M, H] (e.g.
-    LRP's relevance ratios of the first layer). c is never built: each projected observation
-    (`project_rows`) is dotted with s at the W windows it sits in and the sums are added into
-    its agent's entries; the one-hot parts are s times the action and id rows."""
+    LRP's relevance ratios of the first layer). Where most agents are alive, c (without its
+    one-hot parts) is summed from the projected observations (`project_rows`) and dotted with
+    s; where many are dead, c is never built: each projected observation is dotted with s at
+    the W windows it sits in and the sums are added into its agent's entries. The one-hot
+    parts are s times the action and id rows."""
     e, m, _ = x.shape
     n, a, h = x.n_agents, x.n_actions, layer.out_features
     proj = project_rows(layer, x) if proj is None else proj
     _, _, to_agent, to_sum = x.alive_rows()  # [K, W] each; a window outside: the extra row
-    s_rows = torch.cat([s.reshape(-1, h), s.new_zeros(1, h)])
-    g = s_rows.index_select(0, to_sum.view(-1))  # s at the window each (row, slot) fills
-    dots = (proj.view(-1, h) * g).sum(-1)  # [K*W]: row k's slot w dotted with its window
-    buf = s.new_zeros(e * m * n + 1).index_add_(0, to_agent.view(-1), dots)
-    hist = buf[:-1].view(e, m, n)
+    if to_agent.numel() >= _BUILD_C * e * m * n:
+        # most (row, slot) pairs are alive: summing them into c [E, M, N, H] and dotting that
+        # with s reads fewer bytes than gathering s for every pair (3m: 2.5x cheaper at E = 3)
+        c = s.new_zeros(e * m * n + 1, h).index_add_(0, to_agent.view(-1), proj.view(-1, h))
+        hist = torch.linalg.vecdot(c[:-1].view(e, m, n, h), s.unsqueeze(2))
+    else:  # many dead agents (bane_vs_bane): only the live pairs, s gathered for each
+        s_rows = torch.cat([s.reshape(-1, h), s.new_zeros(1, h)])
+        g = s_rows.index_select(0, to_sum.view(-1))  # s at the window each (row, slot) fills
+        dots = (proj.view(-1, h) * g).sum(-1)  # [K*W]: row k's slot w dotted with its window
+        buf = s.new_zeros(e * m * n + 1).index_add_(0, to_agent.view(-1), dots)
+        hist = buf[:-1].view(e, m, n)
     w_act, w_id = _onehot_weights(layer.weight, x)
     act = torch.bmm(s, w_act.view(e, n * a, h).transpose(1, 2)).view(e, m, n, a)
     own_action = act.gather(-1, x.actions.reshape(e, m, n, 1)).squeeze(-1)

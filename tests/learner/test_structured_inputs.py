@@ -174,9 +174,13 @@ def test_lrp_of_agent_blocks_matches_lrp_of_the_dense_input(rule):
         _close(agent_relevance(rel, n).sum(-1), q)
 
 
+@pytest.mark.parametrize("build_c", [0.0, float("inf")])  # c summed / s gathered per pair
 @pytest.mark.parametrize("window", [1, 4])
-def test_block_dot_is_each_agents_dense_contribution_dotted_with_s(window):
+def test_block_dot_is_each_agents_dense_contribution_dotted_with_s(window, build_c, monkeypatch):
+    from learner import networks
     from learner.networks import block_dot
+
+    monkeypatch.setattr(networks, "_BUILD_C", build_c)
 
     obs, actions = _batch(5)
     a, n = 4, 4

@@ -3,9 +3,11 @@
 import pytest
 import torch
 
-from learner.targets import lambda_returns, q_lambda_targets, td_targets
+from learner.targets import lambda_returns, lambda_returns_scan, q_lambda_targets, td_targets
 
 G = 0.9
+# the step-by-step recursion (policy-gradient family) and the suffix scan (value family)
+RETURNS = pytest.mark.parametrize("returns", [lambda_returns, lambda_returns_scan])
 
 
 @pytest.mark.parametrize(
@@ -21,33 +23,35 @@ def test_td_targets(reward, terminated, next_value, expected):
     torch.testing.assert_close(y, torch.tensor(expected))
 
 
-def _lam(reward, terminated, mask, values, lam):
+def _lam(reward, terminated, mask, values, lam, returns=lambda_returns):
     args = [torch.tensor([x]) for x in (reward, terminated, mask, values)]
-    return lambda_returns(*args, gamma=G, lam=lam)[0].tolist()
+    return returns(*args, gamma=G, lam=lam)[0].tolist()
 
 
-def test_lambda_returns_terminal_episode():
+@RETURNS
+def test_lambda_returns_terminal_episode(returns):
     r, term, mask, v = [1.0, 2.0, 3.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [0.5, 0.6, 0.7, 9.0]
     # lambda = 1: Monte-Carlo returns; the value after the terminal step is ignored.
     g2 = 3.0
     g1 = 2.0 + G * g2
     g0 = 1.0 + G * g1
-    assert _lam(r, term, mask, v, 1.0) == pytest.approx([g0, g1, g2])
+    assert _lam(r, term, mask, v, 1.0, returns) == pytest.approx([g0, g1, g2])
     # lambda = 0: one-step TD targets.
-    assert _lam(r, term, mask, v, 0.0) == pytest.approx([1 + G * 0.6, 2 + G * 0.7, 3.0])
+    assert _lam(r, term, mask, v, 0.0, returns) == pytest.approx([1 + G * 0.6, 2 + G * 0.7, 3.0])
     # lambda = 0.5 by hand.
     h2 = 3.0
     h1 = 2.0 + G * (0.5 * 0.7 + 0.5 * h2)
     h0 = 1.0 + G * (0.5 * 0.6 + 0.5 * h1)
-    assert _lam(r, term, mask, v, 0.5) == pytest.approx([h0, h1, h2])
+    assert _lam(r, term, mask, v, 0.5, returns) == pytest.approx([h0, h1, h2])
 
 
-def test_lambda_returns_time_limit_cut_and_padding():
+@RETURNS
+def test_lambda_returns_time_limit_cut_and_padding(returns):
     # Two real steps then padding; the episode was cut (not terminal): bootstrap from V[2].
     r, term, mask, v = [1.0, 1.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 4.0, 99.0]
     g1 = 1.0 + G * 4.0
     g0 = 1.0 + G * (0.2 * 0.0 + 0.8 * g1)
-    assert _lam(r, term, mask, v, 0.8) == pytest.approx([g0, g1, 0.0])
+    assert _lam(r, term, mask, v, 0.8, returns) == pytest.approx([g0, g1, 0.0])
 
 
 def test_q_lambda_targets_zero_is_one_step_td_and_one_is_the_return():
@@ -87,10 +91,12 @@ def _lambda_returns_by_definition(reward, terminated, mask, values, gamma, lam):
     return out
 
 
+@RETURNS
+@pytest.mark.parametrize("t", [1, 2, 9, 64, 121])
 @pytest.mark.parametrize("lam", [0.0, 0.6, 0.8, 1.0])
-def test_lambda_returns_match_the_definition_on_random_padded_batches(lam):
-    gen = torch.Generator().manual_seed(0)
-    e, b, t = 2, 5, 9
+def test_lambda_returns_match_the_definition_on_random_padded_batches(lam, t, returns):
+    gen = torch.Generator().manual_seed(t)
+    e, b = 2, 5
     lengths = torch.randint(1, t + 1, (e, b), generator=gen)
     mask = (torch.arange(t) < lengths.unsqueeze(-1)).float()
     terminated = torch.zeros(e, b, t)
@@ -99,6 +105,20 @@ def test_lambda_returns_match_the_definition_on_random_padded_batches(lam):
     reward = torch.randn(e, b, t, generator=gen) * mask
     values = torch.randn(e, b, t + 1, generator=gen)
     torch.testing.assert_close(
-        lambda_returns(reward, terminated, mask, values, G, lam),
+        returns(reward, terminated, mask, values, G, lam),
         _lambda_returns_by_definition(reward, terminated, mask, values, G, lam),
+    )
+
+
+def test_scan_matches_the_recursion_with_padding_inside_and_leading_axes():
+    """Masks with holes (a real step after padding) and an agent axis: both forms agree."""
+    gen = torch.Generator().manual_seed(1)
+    shape = (3, 4, 2, 30)
+    mask = (torch.rand(shape, generator=gen) < 0.8).float()
+    terminated = (torch.rand(shape, generator=gen) < 0.1).float()
+    reward = torch.randn(shape, generator=gen)
+    values = torch.randn((*shape[:-1], shape[-1] + 1), generator=gen)
+    torch.testing.assert_close(
+        lambda_returns_scan(reward, terminated, mask, values, G, 0.8),
+        lambda_returns(reward, terminated, mask, values, G, 0.8),
     )
