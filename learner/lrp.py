@@ -241,11 +241,12 @@ def critic_all_actions(
     n_actions: int,
     keep: torch.Tensor | None = None,
     first_preactivation: torch.Tensor | None = None,
+    value: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The critic's value with agent i's action moved to a, the others' fixed, for every
     (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`; x may be the critic's
-    `AgentBlocks` input; `first_preactivation` [E, M, H], the first layer on x, when the caller
-    has it, e.g. `BlockRelevance.first_preactivation`).
+    `AgentBlocks` input; `first_preactivation` [E, M, H], the first layer on x, and `value`
+    [E, M], Q_c(x), when the caller has them, e.g. from `lrp_epsilon`).
 
     The first layer is linear, so moving agent i's action from u to a shifts its
     pre-activation by W_i,a - W_i,u: the first layer runs once, on x, and only the layers above
@@ -267,7 +268,7 @@ def critic_all_actions(
             keep = torch.ones(e, m, n, a, dtype=torch.bool, device=actions.device)
         keep = keep.clone()  # the taken action's entry is Q_c(x)
         keep.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)
-        q_x = _upper_layers(mlp, z1).view(e, m, 1, 1)
+        q_x = (_upper_layers(mlp, z1) if value is None else value).view(e, m, 1, 1)
         out = q_x.expand(e, m, n, a).clone().view(e, m * n * a)
         member, mi, act = keep.view(e, m * n, a).nonzero().unbind(1)  # mi = m*N + i
         counts = torch.bincount(member, minlength=e).tolist()

@@ -283,7 +283,8 @@ class RDNLearner(AgentCriticLearner):
             )
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
-        q_alt = critic_all_actions(self.critic, *args, a, trained.view(e, b * t, n, a), first)
+        keep = trained.view(e, b * t, n, a)
+        q_alt = critic_all_actions(self.critic, *args, a, keep, first, q_tot)
         every = q_alt.view(e, b, t, n, a).sub_(q_tot.view(e, b, t, 1, 1))  # in place: fresh
         return every.add_(shares.unsqueeze(-1))
 

@@ -214,6 +214,14 @@ def test_critic_all_actions_on_selected_variants_only():
     torch.testing.assert_close(got[~keep], q_x[~keep])
     none = critic_all_actions(mlp, x, acts, n, obs, a, torch.zeros_like(keep))
     torch.testing.assert_close(none, q_x)
+    # Q_c(x) handed in (as RDN does from its LRP pass) fills the entries not computed: the
+    # ones not kept and the taken actions'
+    value = torch.randn(e, m)
+    given = critic_all_actions(mlp, x, acts, n, obs, a, keep, value=value)
+    taken = torch.nn.functional.one_hot(acts, a).bool()
+    moved = keep & ~taken
+    torch.testing.assert_close(given[moved], full[moved])
+    assert torch.equal(given[~moved], value.view(e, m, 1, 1).expand_as(got)[~moved])
 
 
 def _encoder_mlp(e: int, n: int, block: int) -> MLP:
