@@ -40,7 +40,19 @@ def test_tiny_repro_smac_writes_summary_with_steps_to_95_and_plots(tmp_path, cap
     assert "steps to 50/80/95%" in capsys.readouterr().out
 
 
-def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys):
+@pytest.fixture
+def keep_torch_threads():
+    """bench learn sets this process's torch threads; put them back for later tests."""
+    import torch
+
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys, keep_torch_threads):
+    from cluster.bench.learn import usable_cpus
+
     out = tmp_path / "learn.json"
     argv = ["bench", "learn", "--env", "skirmish/3m", "--algo", "vdn", "--seeds", "2"]
     argv += ["--target-win", "1.0", "--t-max", "500", "--test-interval", "250"]
@@ -55,12 +67,19 @@ def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys):
     assert {"min", "mean", "max"} <= set(got["load_avg_1m"])
     assert all(len(c["won"]) == 2 for c in got["curve"])
     assert json.loads(capsys.readouterr().out)["benchmark"] == "learn"
+    # every usable CPU unless told otherwise, and what the learner's torch then used
+    assert got["torch_threads"] == usable_cpus() == got["machine"]["torch_threads"]
+    argv += ["--threads", "1", "--t-max", "250"]
+    assert main(argv) == 0
+    got = json.loads(out.read_text())
+    assert got["torch_threads"] == 1 == got["machine"]["torch_threads"]
 
 
 @pytest.mark.parametrize(
     "argv, message",
     [
         (["bench", "learn", "--target-win", "1.5"], "--target-win must be in (0, 1]"),
+        (["bench", "learn", "--threads", "-1"], "--threads must be >= 0"),
         (["bench", "learn", "--env", "matrix/two_step"], "reports no battle wins"),
         (["bench", "learn", "--algo", "dqn"], "unknown algorithm 'dqn'"),
         (["bench", "update", "--algos", "vdn,dqn"], "unknown algorithm 'dqn'"),
