@@ -422,9 +422,12 @@ def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) ->
     out = F.embedding(x.onehot_index(time_major), table.reshape(-1, h))
     rows, counts, flat = x.rows(time_major)
     parts = [torch.mm(r, w) for r, w, k in zip(rows.split(counts), w_obs, counts, strict=True) if k]
-    if parts:
-        out.view(-1, h).index_add_(0, flat, torch.cat(parts))
-    return out
+    if not parts:
+        return out
+    # out of place: an in-place index_add_ into a view of `out` makes autograd clone the whole
+    # output in the backward (CopySlices), which cost as much as the rest of this layer's
+    # forward and backward together; the values and gradients are the same, bit for bit
+    return out.view(-1, h).index_add(0, flat, torch.cat(parts)).view(out.shape)
 
 
 @dataclass(frozen=True)
