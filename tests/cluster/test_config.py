@@ -104,3 +104,16 @@ def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_three_keys_away(
     assert (seed.agent_targets, seed.td_lambda, seed.lr) == ("taken", 0.0, 5e-4)
     matrix = load_train_config("rdn", "matrix/four_game", [], []).algo
     assert (matrix.agent_targets, matrix.td_lambda, matrix.lr) == ("taken", 0.0, 5e-4)
+
+
+@pytest.mark.parametrize(
+    "algo, env, upe",
+    [
+        ("iql", "skirmish/3m", 2.0),
+        ("iql", "smac/3m", 2.0),
+        ("vdn", "skirmish/3m", 1.0),
+        ("rdn", "smac/8m", 1.0),
+    ],
+)
+def test_iql_ships_two_updates_per_episode_on_smac_like_maps(algo, env, upe):
+    assert load_train_config(algo, env, [], []).replay.updates_per_episode == upe
