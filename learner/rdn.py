@@ -55,7 +55,8 @@ class RDNConfig:
 
     Attributes:
         gamma: discount.
-        lr: learning rate of the agents and of the critic.
+        lr: learning rate of the critic (and of the agents, times agent_lr_scale).
+        agent_lr_scale: the agents' learning rate as a multiple of lr (1: the seed's one rate).
         grad_norm_clip: per-seed gradient norm clip.
         target_update_episodes: inserted episodes between hard copies into the target critic
             (as the value family's).
@@ -81,12 +82,17 @@ class RDNConfig:
         lrp_reference: "zero" (the seed's LRP-ε of the critic's value) or "no_actions" (the
             value without actions split by LRP-ε, the actions' difference split by the ε-rule
             on deviations; `RDNLearner.agent_targets`).
+        split_critic: which critic the agents' targets are split from: "online" (the seed's:
+            the critic just updated on this batch) or "target" (the target critic, fixed for
+            target_update_episodes episodes, so the agents regress onto a function that holds
+            still between refreshes, as the value family's TD targets do).
         joint_max_limit: largest joint action space "joint_max" may enumerate.
         agent: the shared agent network.
     """
 
     gamma: float = 0.99
     lr: float = 5e-4
+    agent_lr_scale: float = 1.0
     grad_norm_clip: float = 10.0
     target_update_episodes: int = 200
     optimiser: Literal["adam", "rmsprop"] = "adam"
@@ -100,6 +106,7 @@ class RDNConfig:
     next_action: Literal["greedy", "local_max", "joint_max"] = "greedy"
     agent_targets: Literal["taken", "all_actions", "counterfactual"] = "taken"
     lrp_reference: Literal["zero", "no_actions"] = "zero"
+    split_critic: Literal["online", "target"] = "online"
     joint_max_limit: int = 1024
     agent: AgentConfig = field(default_factory=AgentConfig)
 
@@ -113,6 +120,12 @@ class RDNConfig:
             self.reward_norm,
             self.td_lambda,
         )
+        if self.agent_lr_scale <= 0:
+            raise ValueError(f"agent_lr_scale must be > 0, got {self.agent_lr_scale}")
+        if self.split_critic not in ("online", "target"):
+            raise ValueError(
+                f"split_critic must be 'online' or 'target', got {self.split_critic!r}"
+            )
         if self.lrp_eps <= 0:
             raise ValueError(f"lrp_eps must be > 0, got {self.lrp_eps}")
         if self.critic_agent_encoder < 0:
@@ -169,7 +182,11 @@ class RDNLearner(AgentCriticLearner):
             list(self.critic.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN critic", cfg.optimiser
         )
         self.agent_updater = Updater(
-            list(self.agent.parameters()), cfg.lr, cfg.grad_norm_clip, "RDN agent", cfg.optimiser
+            list(self.agent.parameters()),
+            cfg.lr * cfg.agent_lr_scale,
+            cfg.grad_norm_clip,
+            "RDN agent",
+            cfg.optimiser,
         )
         self.updates = 0
 
@@ -231,6 +248,11 @@ class RDNLearner(AgentCriticLearner):
         moved = torch.nn.functional.one_hot(agent, n).bool()
         return torch.where(moved, action.unsqueeze(-1), greedy)
 
+    @property
+    def split_module(self) -> MLP:
+        """The critic the agents' targets are split from (RDNConfig.split_critic)."""
+        return self.critic if self.cfg.split_critic == "online" else self.target_critic.module
+
     def agent_targets(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(shares [E, M, N], Q_c(x) [E, M]): `_split` without its third part."""
         shares, q, _ = self._split(x)
@@ -249,7 +271,7 @@ class RDNLearner(AgentCriticLearner):
         """
         cfg, n = self.cfg, self.info.n_agents
         if cfg.lrp_reference == "zero":
-            relevance, q = lrp_epsilon(self.critic, x, cfg.lrp_eps, cfg.lrp_rule)
+            relevance, q = lrp_epsilon(self.split_module, x, cfg.lrp_eps, cfg.lrp_rule)
             first = relevance.first_preactivation if isinstance(relevance, BlockRelevance) else None
             return agent_relevance(relevance, n), q, first
         e, m, _ = x.shape
@@ -257,8 +279,8 @@ class RDNLearner(AgentCriticLearner):
         x_ref = x.view(e, m, n, self.block).clone()
         x_ref[..., start : start + self.info.n_actions] = 0.0
         x_ref = x_ref.view_as(x)
-        base, q_ref = lrp_epsilon(self.critic, x_ref, cfg.lrp_eps, cfg.lrp_rule)
-        diff, delta = lrp_difference(self.critic, x, x_ref, cfg.lrp_eps)
+        base, q_ref = lrp_epsilon(self.split_module, x_ref, cfg.lrp_eps, cfg.lrp_rule)
+        diff, delta = lrp_difference(self.split_module, x, x_ref, cfg.lrp_eps)
         return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta, None
 
     def _every_action_targets(
@@ -279,12 +301,12 @@ class RDNLearner(AgentCriticLearner):
         args = (x, actions.reshape(e, b * t, n), n, self.cfg.obs_window * self.info.obs_dim)
         if self.cfg.agent_targets == "all_actions":
             every = agent_relevance_all_actions(
-                self.critic, *args, self.info.n_actions, self.cfg.lrp_eps, self.cfg.lrp_rule
+                self.split_module, *args, self.info.n_actions, self.cfg.lrp_eps, self.cfg.lrp_rule
             )
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
         keep = trained.view(e, b * t, n, a)
-        q_alt = critic_all_actions(self.critic, *args, a, keep, first, q_tot)
+        q_alt = critic_all_actions(self.split_module, *args, a, keep, first, q_tot)
         every = q_alt.view(e, b, t, n, a).sub_(q_tot.view(e, b, t, 1, 1))  # in place: fresh
         return every.add_(shares.unsqueeze(-1))
 

@@ -353,3 +353,41 @@ def test_rdn_counterfactual_targets_are_the_share_plus_the_critics_difference():
                 want = shares.view(e, b, t, n)[..., i] + q_alt - q
                 sel = ok[..., i, u]
                 torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
+
+
+def test_rdn_split_critic_target_splits_the_frozen_copy_and_agent_lr_scale_sets_its_rate():
+    """split_critic "target": the agents' targets come from the target critic, so moving the
+    online critic leaves them unchanged (and with "online" it changes them); agent_lr_scale
+    multiplies the agents' learning rate only; bad values name the key."""
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.batch import TensorBatch, obs_history
+    from learner.rdn import RDNConfig, RDNLearner
+
+    with pytest.raises(ValueError, match="split_critic"):
+        RDNConfig(split_critic="newest").validate()
+    with pytest.raises(ValueError, match="agent_lr_scale"):
+        RDNConfig(agent_lr_scale=0.0).validate()
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    tb = TensorBatch.from_episodes(record_batch("skirmish/3m", 3, 1))
+    hist = obs_history(tb.obs, 4)[:, :, :-1]
+    shares = {}
+    for which in ("online", "target"):
+        torch.manual_seed(3)
+        cfg = RDNConfig(split_critic=which, critic_hidden=(16, 16), lr=0.002, agent_lr_scale=0.25)
+        cfg.validate()
+        learner = RDNLearner(cfg, schema)
+        assert learner.agent_updater.optimiser.param_groups[0]["lr"] == pytest.approx(0.0005)
+        assert learner.critic_updater.optimiser.param_groups[0]["lr"] == pytest.approx(0.002)
+        x = learner.critic_inputs(hist, tb.actions)
+        before, _ = learner.agent_targets(x)
+        with torch.no_grad():
+            for p in learner.critic.parameters():
+                p.add_(0.1 * torch.randn_like(p))
+        after, q = learner.agent_targets(x)
+        shares[which] = (before, after)
+        with torch.no_grad():
+            want = learner.split_module(x).squeeze(-1)
+        torch.testing.assert_close(q, want)
+    assert not torch.allclose(*shares["online"])
+    torch.testing.assert_close(*shares["target"])
