@@ -86,6 +86,14 @@ class RDNConfig:
             the critic just updated on this batch) or "target" (the target critic, fixed for
             target_update_episodes episodes, so the agents regress onto a function that holds
             still between refreshes, as the value family's TD targets do).
+        split_actions: the joint action the agents' targets are split at: "taken" (the
+            seed's: the joint action in the replay, whose teammates' actions include the
+            behaviour policy's exploration) or "greedy" (every agent's greedy action under the
+            current agent network, the joint action the team would take; the taken action is
+            not special). With agent_targets "counterfactual", agent i's target for action a is
+            then its LRP share of Q_c at the greedy joint action plus Q_c(a, greedy_-i) -
+            Q_c(greedy): a best response to the teammates' greedy actions, not to their
+            exploratory ones. Needs agent_targets "counterfactual" or "all_actions".
         joint_max_limit: largest joint action space "joint_max" may enumerate.
         agent: the shared agent network.
     """
@@ -107,6 +115,7 @@ class RDNConfig:
     agent_targets: Literal["taken", "all_actions", "counterfactual"] = "taken"
     lrp_reference: Literal["zero", "no_actions"] = "zero"
     split_critic: Literal["online", "target"] = "online"
+    split_actions: Literal["taken", "greedy"] = "taken"
     joint_max_limit: int = 1024
     agent: AgentConfig = field(default_factory=AgentConfig)
 
@@ -125,6 +134,15 @@ class RDNConfig:
         if self.split_critic not in ("online", "target"):
             raise ValueError(
                 f"split_critic must be 'online' or 'target', got {self.split_critic!r}"
+            )
+        if self.split_actions not in ("taken", "greedy"):
+            raise ValueError(
+                f"split_actions must be 'taken' or 'greedy', got {self.split_actions!r}"
+            )
+        if self.split_actions == "greedy" and self.agent_targets == "taken":
+            raise ValueError(
+                "split_actions=greedy needs agent_targets=counterfactual or all_actions "
+                "(agent_targets=taken trains only the taken action)"
             )
         if self.lrp_eps <= 0:
             raise ValueError(f"lrp_eps must be > 0, got {self.lrp_eps}")
@@ -283,6 +301,19 @@ class RDNLearner(AgentCriticLearner):
         diff, delta = lrp_difference(self.split_module, x, x_ref, cfg.lrp_eps)
         return agent_relevance(base, n) + agent_relevance(diff, n), q_ref + delta, None
 
+    def split_joint_action(
+        self, qs: torch.Tensor, actions: torch.Tensor, avail: torch.Tensor
+    ) -> torch.Tensor:
+        """The joint action the agents' targets are split at (RDNConfig.split_actions): the
+        taken `actions` themselves, or every agent's greedy action under its Q-values `qs`
+        among the available ones.
+
+        Shapes: qs [E, B, T, N, A], actions [E, B, T, N], avail [E, B, T, N, A] -> [E, B, T, N].
+        """
+        if self.cfg.split_actions == "taken":
+            return actions
+        return qs.detach().masked_fill(~avail, -1e10).argmax(-1)
+
     def _every_action_targets(
         self,
         x: torch.Tensor,
@@ -327,6 +358,9 @@ class RDNLearner(AgentCriticLearner):
         critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
         self.critic_updater.apply(critic_loss)
 
+        acts = self.split_joint_action(qs[:, :, :-1], tb.actions, tb.avail[:, :, :-1])
+        if acts is not tb.actions:
+            x = self.critic_inputs(hist[:, :, :-1], acts)
         targets, q_tot, first = self._split(x)
         targets = targets.view(e, b, t, n)
         if self.cfg.agent_targets == "taken":
@@ -335,7 +369,7 @@ class RDNLearner(AgentCriticLearner):
             agent_loss = masked_mean((chosen - targets).pow(2), mask)
         else:  # a target for every available action of every agent
             ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
-            every = self._every_action_targets(x, tb.actions, targets, q_tot, ok, first)
+            every = self._every_action_targets(x, acts, targets, q_tot, ok, first)
             agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok.float())
         self.agent_updater.apply(agent_loss)
 

@@ -391,3 +391,54 @@ def test_rdn_split_critic_target_splits_the_frozen_copy_and_agent_lr_scale_sets_
         torch.testing.assert_close(q, want)
     assert not torch.allclose(*shares["online"])
     torch.testing.assert_close(*shares["target"])
+
+
+def test_rdn_split_actions_greedy_centres_the_targets_on_the_agents_greedy_joint_action():
+    """split_actions "greedy": the joint action the targets are split at is every agent's
+    greedy available action (not the taken one), and agent i's counterfactual target for u is
+    its LRP share there plus Q_c(u, greedy_-i) - Q_c(greedy), by brute force; with "taken"
+    the taken actions come back unchanged; the option refuses taken-action targets."""
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.batch import TensorBatch, obs_history
+    from learner.rdn import RDNConfig, RDNLearner
+
+    with pytest.raises(ValueError, match="split_actions"):
+        RDNConfig(split_actions="best").validate()
+    with pytest.raises(ValueError, match="split_actions=greedy needs agent_targets"):
+        RDNConfig(split_actions="greedy", agent_targets="taken").validate()
+    torch.manual_seed(2)
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    tb = TensorBatch.from_episodes(record_batch("skirmish/3m", 3, 1))
+    e, b, t, n = tb.actions.shape
+    a = schema.n_actions
+    avail = tb.avail[:, :, :-1]
+    qs = torch.randn(e, b, t, n, a)
+    taken = RDNLearner(RDNConfig(agent_targets="counterfactual"), schema)
+    assert taken.split_joint_action(qs, tb.actions, avail) is tb.actions
+    cfg = RDNConfig(agent_targets="counterfactual", split_actions="greedy", critic_hidden=(16, 16))
+    cfg.validate()
+    learner = RDNLearner(cfg, schema)
+    greedy = learner.split_joint_action(qs, tb.actions, avail)
+    real = tb.mask.bool()
+    assert avail.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)[real].all()
+    best = qs.masked_fill(~avail, float("-inf")).max(-1).values
+    torch.testing.assert_close(qs.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)[real], best[real])
+    assert (greedy != tb.actions)[real].any()
+    hist = obs_history(tb.obs, cfg.obs_window)[:, :, :-1]
+    ok = avail & real[..., None, None]
+    with torch.no_grad():
+        x = learner.critic_inputs(hist, greedy)
+        shares, q, first = learner._split(x)
+        got = learner._every_action_targets(x, greedy, shares.view(e, b, t, n), q, ok, first)
+        q = learner.critic(x).view(e, b, t)
+        for i in range(n):
+            for u in range(a):
+                alt = greedy.clone()
+                alt[..., i] = u
+                q_alt = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
+                want = shares.view(e, b, t, n)[..., i] + q_alt - q
+                sel = ok[..., i, u]
+                torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
+    metrics = learner.step(record_batch("skirmish/3m", 4, 1))
+    assert metrics["lrp_conservation_gap"] < 1e-3
