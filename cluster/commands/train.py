@@ -15,7 +15,7 @@ import yaml
 
 from cluster.commands import add_command
 from cluster.config.schema import ConfigError
-from cluster.config.train import TrainConfig, default_files, load_train_config
+from cluster.config.train import TrainConfig, default_files, load_train_config, recipe_file
 from cluster.core import EvalRecord, write_json
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer
@@ -142,6 +142,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def config_text(cfg: TrainConfig, user_files: list[str]) -> str:
     """`cfg` as YAML, headed by comments naming the layers it was resolved from."""
     layers = ["dataclass defaults", *map(str, default_files(cfg.algo_name, cfg.env.id))]
+    layers += [str(f) for f in [recipe_file(cfg.algo_name, cfg.recipe)] if f is not None]
     layers += [*user_files, "--set overrides"]
     head = "# Resolved config. Layers, later ones winning:\n"
     head += "".join(f"#   {layer}\n" for layer in layers)

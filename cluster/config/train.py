@@ -202,6 +202,11 @@ class ClusterConfig:
             raise ValueError("bind_host must name an address, e.g. 127.0.0.1")
 
 
+SHIPPED_RECIPE = (
+    "shipped"  # the measured layers alone; any other recipe adds recipes/<algo>.<r>.yaml
+)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """A whole run. `algo` is an instance of the registry's config class for `algo_name`."""
@@ -214,10 +219,12 @@ class TrainConfig:
     cycling: CyclingConfig
     run: RunConfig
     cluster: ClusterConfig
+    recipe: str = SHIPPED_RECIPE
 
     def to_yaml_dict(self) -> dict[str, Any]:
         return {
             "algo_name": self.algo_name,
+            "recipe": self.recipe,
             "algo": to_dict(self.algo),
             "env": to_dict(self.env),
             "exploration": to_dict(self.exploration),
@@ -284,6 +291,30 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     return required + [p for p in optional if p.is_file()]
 
 
+def recipe_file(algo: str, recipe: str) -> Traversable | None:
+    """The layer `recipes/<algo>.<recipe>.yaml` that `recipe` puts on top of the shipped layers
+    (None for the shipped recipe itself).
+
+    Raises:
+        ConfigError: no such recipe for this algorithm; the message lists the valid ones.
+    """
+    if recipe == SHIPPED_RECIPE:
+        return None
+    folder = config_root() / "recipes"
+    layer = folder / f"{algo}.{recipe}.yaml"
+    if layer.is_file():
+        return layer
+    known = sorted(
+        p.name[len(algo) + 1 : -len(".yaml")]
+        for p in (folder.iterdir() if folder.is_dir() else [])
+        if p.name.startswith(f"{algo}.") and p.name.endswith(".yaml")
+    )
+    raise ConfigError(
+        f"recipe {recipe!r} is not a recipe of {algo}; valid recipes: "
+        + ", ".join([SHIPPED_RECIPE, *known])
+    )
+
+
 def load_train_config(
     algo: str | None, env_id: str | None, files: list[str] = (), overrides: list[str] = ()
 ) -> TrainConfig:
@@ -306,10 +337,14 @@ def load_train_config(
         get_spec(env_id)
     except EnvError as e:
         raise ConfigError(f"env: {e}") from None
+    recipe = str(user.get("recipe", SHIPPED_RECIPE))
+    layers = default_files(algo, env_id)
+    extra = recipe_file(algo, recipe)
     data: dict[str, Any] = {}
-    for path in default_files(algo, env_id):
+    for path in layers if extra is None else [*layers, extra]:
         data = deep_merge(data, read_yaml(path))
     data = deep_merge(data, user)
+    data["recipe"] = recipe
     data["algo_name"] = algo
     data.setdefault("env", {})["id"] = env_id
     return build_train_config(data)
@@ -346,12 +381,16 @@ def build_train_config(data: dict[str, Any]) -> TrainConfig:
         spec = get_algo(data.get("algo_name", ""))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    unknown = [k for k in data if k not in (*SECTIONS, "algo", "algo_name")]
+    unknown = [k for k in data if k not in (*SECTIONS, "algo", "algo_name", "recipe")]
     if unknown:
         valid = ", ".join(SECTIONS)
-        raise ConfigError(f"unknown config section {unknown[0]!r}; valid sections: algo, {valid}")
+        raise ConfigError(
+            f"unknown config section {unknown[0]!r}; valid sections: algo, {valid} (and the "
+            "key recipe)"
+        )
     built = {
         name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
-    return TrainConfig(algo_name=spec.name, algo=algo_cfg, **built)
+    recipe = str(data.get("recipe", SHIPPED_RECIPE))
+    return TrainConfig(algo_name=spec.name, algo=algo_cfg, recipe=recipe, **built)

@@ -3,7 +3,7 @@
 import pytest
 
 from cluster.config.schema import ConfigError, parse_overrides, read_yaml
-from cluster.config.train import load_train_config
+from cluster.config.train import build_train_config, load_train_config
 
 
 def test_shipped_layers_apply_seed_hyper_parameters():
@@ -95,15 +95,48 @@ def test_iql_ships_its_measured_learning_rate_on_smac_like_maps_only(algo, env, 
     assert load_train_config(algo, env, [], []).algo.lr == lr
 
 
+SEED_RDN = {
+    "agent_targets": "taken",
+    "td_lambda": 0.0,
+    "lr": 5e-4,
+    "agent_lr_scale": 1.0,
+    "obs_window": 4,
+    "split_actions": "taken",
+}
+
+
+def rdn_keys(cfg) -> dict:
+    return {k: getattr(cfg, k) for k in SEED_RDN}
+
+
 @pytest.mark.parametrize("env", ["skirmish/3m", "smac/3m"])
-def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_three_keys_away(env):
-    shipped = load_train_config("rdn", env, [], []).algo
-    assert (shipped.agent_targets, shipped.td_lambda, shipped.lr) == ("counterfactual", 0.8, 1e-3)
-    seed_keys = ["algo.agent_targets=taken", "algo.td_lambda=0", "algo.lr=0.0005"]
-    seed = load_train_config("rdn", env, [], seed_keys).algo
-    assert (seed.agent_targets, seed.td_lambda, seed.lr) == ("taken", 0.0, 5e-4)
-    matrix = load_train_config("rdn", "matrix/four_game", [], []).algo
-    assert (matrix.agent_targets, matrix.td_lambda, matrix.lr) == ("taken", 0.0, 5e-4)
+def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_one_key_away(env):
+    shipped = load_train_config("rdn", env, [], [])
+    assert shipped.recipe == "shipped"
+    assert (shipped.algo.agent_targets, shipped.algo.td_lambda, shipped.algo.lr) == (
+        "counterfactual",
+        0.8,
+        1e-3,
+    )
+    seed = load_train_config("rdn", env, [], ["recipe=seed"])
+    assert seed.recipe == "seed" and rdn_keys(seed.algo) == SEED_RDN
+    # the recipe is a layer under the user's overrides, and it is recorded for resuming
+    mixed = load_train_config("rdn", env, [], ["recipe=seed", "algo.td_lambda=0.5"])
+    assert mixed.algo.td_lambda == 0.5 and mixed.algo.agent_targets == "taken"
+    again = build_train_config(seed.to_yaml_dict())
+    assert again == seed
+    matrix = load_train_config("rdn", "matrix/four_game", [], [])
+    assert rdn_keys(matrix.algo) == SEED_RDN
+    assert load_train_config("rdn", "matrix/four_game", [], ["recipe=seed"]).algo == matrix.algo
+
+
+def test_an_unknown_recipe_names_the_valid_ones():
+    with pytest.raises(
+        ConfigError, match="'sead' is not a recipe of rdn; valid recipes: shipped, seed"
+    ):
+        load_train_config("rdn", "skirmish/3m", [], ["recipe=sead"])
+    with pytest.raises(ConfigError, match="not a recipe of vdn; valid recipes: shipped$"):
+        load_train_config("vdn", "skirmish/3m", [], ["recipe=seed"])
 
 
 @pytest.mark.parametrize(
