@@ -135,7 +135,7 @@ def test_an_unknown_recipe_names_the_valid_ones():
         ConfigError, match="'sead' is not a recipe of rdn; valid recipes: shipped, seed"
     ):
         load_train_config("rdn", "skirmish/3m", [], ["recipe=sead"])
-    with pytest.raises(ConfigError, match="not a recipe of vdn; valid recipes: shipped$"):
+    with pytest.raises(ConfigError, match=r"not a recipe of vdn; valid recipes: shipped$"):
         load_train_config("vdn", "skirmish/3m", [], ["recipe=seed"])
 
 
