@@ -209,7 +209,9 @@ SHIPPED_RECIPE = (
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A whole run. `algo` is an instance of the registry's config class for `algo_name`."""
+    """A whole run. `algo` is an instance of the registry's config class for `algo_name`;
+    `recipe` names the layer `recipes/<algo_name>.<recipe>.yaml` that was merged on top of the
+    shipped layers ("shipped": none; `recipe_file`)."""
 
     algo_name: str
     algo: Any
@@ -393,4 +395,5 @@ def build_train_config(data: dict[str, Any]) -> TrainConfig:
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
     recipe = str(data.get("recipe", SHIPPED_RECIPE))
+    recipe_file(spec.name, recipe)  # an unknown recipe is an error that lists the valid ones
     return TrainConfig(algo_name=spec.name, algo=algo_cfg, recipe=recipe, **built)

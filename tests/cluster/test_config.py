@@ -137,6 +137,9 @@ def test_an_unknown_recipe_names_the_valid_ones():
         load_train_config("rdn", "skirmish/3m", [], ["recipe=sead"])
     with pytest.raises(ConfigError, match=r"not a recipe of vdn; valid recipes: shipped$"):
         load_train_config("vdn", "skirmish/3m", [], ["recipe=seed"])
+    saved = load_train_config("rdn", "skirmish/3m").to_yaml_dict()
+    with pytest.raises(ConfigError, match="'paper' is not a recipe of rdn"):
+        build_train_config({**saved, "recipe": "paper"})
 
 
 @pytest.mark.parametrize(
