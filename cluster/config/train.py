@@ -202,9 +202,8 @@ class ClusterConfig:
             raise ValueError("bind_host must name an address, e.g. 127.0.0.1")
 
 
-SHIPPED_RECIPE = (
-    "shipped"  # the measured layers alone; any other recipe adds recipes/<algo>.<r>.yaml
-)
+# The measured layers alone; any other recipe r adds the layer recipes/<algo>.<r>.yaml.
+SHIPPED_RECIPE = "shipped"
 
 
 @dataclass(frozen=True)
