@@ -386,3 +386,11 @@ def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Per-member mean over the real entries: x, mask [E, ...] -> [E]."""
     dims = tuple(range(1, x.dim()))
     return (x * mask).sum(dims) / mask.sum(dims).clamp_min(1.0)
+
+
+def greedy_actions(q: torch.Tensor, avail: torch.Tensor) -> torch.Tensor:
+    """The best available action under q (ties: the lowest index), without gradient.
+
+    Shapes: q, avail [..., A] -> [...] (long).
+    """
+    return q.detach().masked_fill(~avail, -1e10).argmax(-1)

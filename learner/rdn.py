@@ -26,7 +26,14 @@ from typing import Literal
 import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_blocks, agent_inputs, masked_mean, obs_history
+from learner.batch import (
+    TensorBatch,
+    agent_blocks,
+    agent_inputs,
+    greedy_actions,
+    masked_mean,
+    obs_history,
+)
 from learner.common import (
     AgentConfig,
     AgentCriticLearner,
@@ -231,7 +238,7 @@ class RDNLearner(AgentCriticLearner):
         e, b, t, n, _ = hist_next.shape
         critic = self.target_critic.module
         if self.cfg.next_action != "joint_max":
-            greedy = qs_next.masked_fill(~avail_next, -1e10).argmax(-1)
+            greedy = greedy_actions(qs_next, avail_next)
             if self.cfg.next_action == "local_max":
                 greedy = self._best_deviation(hist_next, greedy, avail_next)
             return critic(self.critic_inputs(hist_next, greedy)).view(e, b, t)
@@ -312,7 +319,7 @@ class RDNLearner(AgentCriticLearner):
         """
         if self.cfg.split_actions == "taken":
             return actions
-        return qs.detach().masked_fill(~avail, -1e10).argmax(-1)
+        return greedy_actions(qs, avail)
 
     def _every_action_targets(
         self,

@@ -16,7 +16,7 @@ from typing import Literal
 import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_inputs, joint_obs, masked_mean
+from learner.batch import TensorBatch, agent_inputs, greedy_actions, joint_obs, masked_mean
 from learner.common import (
     AgentConfig,
     EpisodeClock,
@@ -152,10 +152,8 @@ class ValueLearner:
             tqs = unroll(self.target_agent.module, inputs)[:, :, 1:]
             avail_next = tb.avail[:, :, 1:]
             if self.cfg.double_q:
-                best = (
-                    qs.detach()[:, :, 1:].masked_fill(~avail_next, -1e10).argmax(-1, keepdim=True)
-                )
-                next_q = tqs.gather(-1, best).squeeze(-1)
+                best = greedy_actions(qs[:, :, 1:], avail_next)
+                next_q = tqs.gather(-1, best.unsqueeze(-1)).squeeze(-1)
             else:
                 next_q = tqs.masked_fill(~avail_next, -1e10).max(-1).values
         cfg = self.cfg

@@ -321,6 +321,23 @@ def test_rdn_local_max_next_action_is_the_best_available_single_agent_deviation(
     assert metrics["lrp_conservation_gap"] < 1e-3
 
 
+def assert_counterfactual_targets(learner, hist, acts, shares, ok, got):
+    """By brute force: at every real step and available action u of agent i, the target `got`
+    is agent i's LRP share at the joint action `acts` plus Q_c(acts with a_i = u) - Q_c(acts)."""
+    e, b, t, n = acts.shape
+    shares = shares.view(e, b, t, n)
+    with torch.no_grad():
+        q = learner.critic(learner.critic_inputs(hist, acts)).view(e, b, t)
+        for i in range(n):
+            for u in range(learner.info.n_actions):
+                alt = acts.clone()
+                alt[..., i] = u
+                q_alt = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
+                want = shares[..., i] + q_alt - q
+                sel = ok[..., i, u]
+                torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
+
+
 def test_rdn_counterfactual_targets_are_the_share_plus_the_critics_difference():
     """agent_targets "counterfactual" on a skirmish batch, by brute force: at every real step
     and available action u of agent i, the target is agent i's LRP share plus
@@ -337,22 +354,13 @@ def test_rdn_counterfactual_targets_are_the_share_plus_the_critics_difference():
     tb = TensorBatch.from_episodes(record_batch("skirmish/3m", 3, 1))
     hist = obs_history(tb.obs, cfg.obs_window)[:, :, :-1]
     e, b, t, n = tb.actions.shape
-    a = schema.n_actions
     ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
     with torch.no_grad():
         x = learner.critic_inputs(hist, tb.actions)
         shares, q, first = learner._split(x)  # first: the critic's first layer, from LRP
         assert first is not None
         got = learner._every_action_targets(x, tb.actions, shares.view(e, b, t, n), q, ok, first)
-        q = learner.critic(x).view(e, b, t)
-        for i in range(n):
-            for u in range(a):
-                alt = tb.actions.clone()
-                alt[..., i] = u
-                q_alt = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
-                want = shares.view(e, b, t, n)[..., i] + q_alt - q
-                sel = ok[..., i, u]
-                torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
+        assert_counterfactual_targets(learner, hist, tb.actions, shares, ok, got)
 
 
 def test_rdn_split_critic_target_splits_the_frozen_copy_and_agent_lr_scale_sets_its_rate():
@@ -431,14 +439,6 @@ def test_rdn_split_actions_greedy_centres_the_targets_on_the_agents_greedy_joint
         x = learner.critic_inputs(hist, greedy)
         shares, q, first = learner._split(x)
         got = learner._every_action_targets(x, greedy, shares.view(e, b, t, n), q, ok, first)
-        q = learner.critic(x).view(e, b, t)
-        for i in range(n):
-            for u in range(a):
-                alt = greedy.clone()
-                alt[..., i] = u
-                q_alt = learner.critic(learner.critic_inputs(hist, alt)).view(e, b, t)
-                want = shares.view(e, b, t, n)[..., i] + q_alt - q
-                sel = ok[..., i, u]
-                torch.testing.assert_close(got[..., i, u][sel], want[sel], atol=1e-5, rtol=1e-5)
+        assert_counterfactual_targets(learner, hist, greedy, shares, ok, got)
     metrics = learner.step(record_batch("skirmish/3m", 4, 1))
     assert metrics["lrp_conservation_gap"] < 1e-3
