@@ -33,10 +33,30 @@ from torch.nn import functional as F
 
 from learner.batch import AgentBlocks
 from learner.lazy import LazyTensor
-from learner.networks import MLP, block_dot, block_preactivation, project_rows
+from learner.networks import (
+    MLP,
+    AgentBlockLinear,
+    block_dot,
+    block_preactivation,
+    project_rows,
+)
 
 LrpRule = Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"]
 LRP_RULES: tuple[str, ...] = ("eps_residual", "eps", "eps_nobias", "grad_x_input")
+
+
+def _times_weight(layer: torch.nn.Module, a: torch.Tensor) -> torch.Tensor:
+    """a @ layer.weight (no bias); an AgentBlockLinear block by block, never densely."""
+    if isinstance(layer, AgentBlockLinear):
+        return layer.matmul(a)
+    return torch.bmm(a, layer.weight)
+
+
+def _times_weight_t(layer: torch.nn.Module, s: torch.Tensor) -> torch.Tensor:
+    """s @ layer.weightᵀ; an AgentBlockLinear block by block, never densely."""
+    if isinstance(layer, AgentBlockLinear):
+        return layer.matmul_t(s)
+    return torch.bmm(s, layer.weight.transpose(1, 2))
 
 
 def _share(weight: torch.Tensor) -> torch.Tensor:
@@ -67,20 +87,23 @@ def lrp_epsilon(
     Returns:
         (relevance [E, M, D], output [E, M]).
     """
-    if isinstance(x, AgentBlocks):
+    encoder = isinstance(mlp.layers[0], AgentBlockLinear)
+    if isinstance(x, AgentBlocks) and not encoder:
         return _lrp_blocks(mlp, x, eps, rule)
     if rule == "grad_x_input":
-        return _grad_x_input(mlp, x)
+        return _grad_x_input(mlp, x.dense() if isinstance(x, AgentBlocks) else x)
+    if encoder:
+        return _lrp_encoder(mlp, x, eps, rule)
     with torch.no_grad():
         acts = mlp.activations(x)
         out = acts[-1]
         relevance = out
         for layer, a in zip(reversed(mlp.layers), reversed(acts[:-1]), strict=True):
-            z = torch.bmm(a, layer.weight)
+            z = _times_weight(layer, a)
             if rule != "eps_nobias":
                 z = z + layer.bias
             s = relevance / _stabilise(z, eps)
-            relevance = a * torch.bmm(s, layer.weight.transpose(1, 2))
+            relevance = a * _times_weight_t(layer, s)
         out = out.squeeze(-1)
         if rule == "eps_residual":
             residual = out - relevance.sum(-1)
@@ -152,20 +175,8 @@ def _lrp_blocks(
             per_agent = block_dot(first, x, s1, proj)
         return BlockRelevance(x, per_agent, s1, first.weight.detach(), None, z1), out
     with torch.no_grad():
-        zs, acts = [z1], []
-        for layer in mlp.layers[1:]:
-            acts.append(torch.relu(zs[-1]))
-            zs.append(layer(acts[-1]))
-        out = zs[-1]
-        relevance = out
-        for k in range(len(mlp.layers) - 1, 0, -1):
-            layer = mlp.layers[k]
-            z = zs[k] if rule != "eps_nobias" else torch.bmm(acts[k - 1], layer.weight)
-            s = relevance / _stabilise(z, eps)
-            relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
-        s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else z1 - first.bias, eps)
+        s1, out = _first_layer_ratios(mlp, z1, eps, rule)
         per_agent = block_dot(first, x, s1, proj)  # [E, M, N]
-        out = out.squeeze(-1)
         residual = None
         if rule == "eps_residual":
             residual = out - per_agent.sum(-1)
@@ -173,6 +184,90 @@ def _lrp_blocks(
             share = _share(weight)
             per_agent = per_agent + residual.unsqueeze(-1) * share
     return BlockRelevance(x, per_agent, s1, first.weight.detach(), residual, z1), out
+
+
+def _first_layer_ratios(
+    mlp: MLP, z1: torch.Tensor, eps: float, rule: LrpRule
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ε-rule from the output down to the first layer, given that layer's pre-activation
+    z1 [E, M, H]: (s1 = R1 / (z1 + ε·sign(z1)) [E, M, H], the critic's output [E, M]); the
+    first layer's input relevance is then x_j Σ_k w_jk s1_k."""
+    first = mlp.layers[0]
+    zs, acts = [z1], []
+    for layer in mlp.layers[1:]:
+        acts.append(torch.relu(zs[-1]))
+        zs.append(layer(acts[-1]))
+    out = zs[-1]
+    relevance = out
+    for k in range(len(mlp.layers) - 1, 0, -1):
+        layer = mlp.layers[k]
+        z = zs[k] if rule != "eps_nobias" else torch.bmm(acts[k - 1], layer.weight)
+        s = relevance / _stabilise(z, eps)
+        relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
+    s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else z1 - first.bias, eps)
+    return s1, out.squeeze(-1)
+
+
+class EncoderRelevance(LazyTensor):
+    """LRP relevance [E, M, N*block] of the dense input x of a critic whose first layer is an
+    `AgentBlockLinear` encoder, kept as each agent's sum (`per_agent` [E, M, N]): unit k of
+    agent i sees only agent i's block, so that block's first-layer relevance is
+    Σ_k s1_ik (z1_ik - b_k), with no product by the weights. The dense values
+    (x * (s1 @ W1ᵀ), plus the eps_residual spread) are computed only if used as a tensor.
+    `first_preactivation` [E, M, N*H] is the encoder on x (`critic_all_actions` reuses it)."""
+
+    def __new__(cls, x: torch.Tensor, *args, **kwargs):
+        return super().__new__(cls, tuple(x.shape), x)
+
+    def __init__(
+        self,
+        x: torch.Tensor,
+        layer: AgentBlockLinear,
+        per_agent: torch.Tensor,
+        s1: torch.Tensor,
+        residual: torch.Tensor | None,
+        first_preactivation: torch.Tensor,
+    ):
+        super().__init__(tuple(x.shape), x)
+        self.x, self.layer, self.per_agent, self.s1 = x, layer, per_agent, s1
+        self.residual, self.first_preactivation = residual, first_preactivation
+        self.weight_version = layer.block_weight._version
+
+    def materialise(self) -> torch.Tensor:
+        if self.layer.block_weight._version != self.weight_version:
+            raise RuntimeError(
+                "the critic's encoder changed after this relevance was computed "
+                "(an optimiser step); compute lrp_epsilon again for its per-feature values"
+            )
+        x = self.x.dense() if isinstance(self.x, AgentBlocks) else self.x
+        relevance = x * self.layer.matmul_t(self.s1)
+        if self.residual is not None:
+            relevance = relevance + self.residual.unsqueeze(-1) * _share(x.abs())
+        return relevance
+
+
+def _lrp_encoder(
+    mlp: MLP, x: torch.Tensor, eps: float, rule: LrpRule
+) -> tuple[EncoderRelevance, torch.Tensor]:
+    """`lrp_epsilon` for a critic whose first layer is an `AgentBlockLinear` (x dense or
+    `AgentBlocks`, which stays lazy)."""
+    first = mlp.layers[0]
+    e, m, _ = x.shape
+    n, h = first.n_agents, first.hidden
+    with torch.no_grad():
+        z1 = mlp.first(x)
+        s1, out = _first_layer_ratios(mlp, z1, eps, rule)
+        contribution = (z1 - first.bias).view(e, m, n, h)  # each agent's block's, unit by unit
+        per_agent = (s1.view(e, m, n, h) * contribution).sum(-1)
+        residual = None
+        if rule == "eps_residual":
+            residual = out - per_agent.sum(-1)
+            if isinstance(x, AgentBlocks):
+                l1 = x.block_l1()
+            else:
+                l1 = x.abs().view(e, m, n, first.block).sum(-1)
+            per_agent = per_agent + residual.unsqueeze(-1) * _share(l1)
+    return EncoderRelevance(x, first, per_agent, s1, residual, z1), out
 
 
 def _grad_x_input(mlp: MLP, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -195,7 +290,8 @@ def agent_relevance(relevance: torch.Tensor, n_agents: int) -> torch.Tensor:
     e, m, d = relevance.shape
     if d % n_agents:
         raise ValueError(f"input width {d} is not a multiple of n_agents={n_agents}")
-    if isinstance(relevance, BlockRelevance) and relevance.per_agent.shape[-1] == n_agents:
+    structured = isinstance(relevance, BlockRelevance | EncoderRelevance)
+    if structured and relevance.per_agent.shape[-1] == n_agents:
         return relevance.per_agent
     return relevance.view(e, m, n_agents, d // n_agents).sum(-1)
 
@@ -256,6 +352,10 @@ def critic_all_actions(
     """
     e, m, n = actions.shape
     a = n_actions
+    if isinstance(mlp.layers[0], AgentBlockLinear):
+        return _critic_all_actions_encoder(
+            mlp, x, actions, action_offset, a, keep, first_preactivation, value
+        )
     with torch.no_grad():
         z1 = mlp.first(x) if first_preactivation is None else first_preactivation  # [E, M, H]
         h = z1.shape[-1]
@@ -301,11 +401,71 @@ def critic_all_actions(
     return out.view(e, m, n, a)
 
 
-def _upper_layers(mlp: MLP, z1: torch.Tensor, in_place: bool = False) -> torch.Tensor:
-    """The critic above its first layer, from first-layer pre-activations [E, R, H] -> [E, R]
+def _critic_all_actions_encoder(
+    mlp: MLP,
+    x: torch.Tensor,
+    actions: torch.Tensor,
+    action_offset: int,
+    a: int,
+    keep: torch.Tensor | None,
+    first_preactivation: torch.Tensor | None,
+    value: torch.Tensor | None,
+) -> torch.Tensor:
+    """`critic_all_actions` for a critic whose first layer is an `AgentBlockLinear` encoder.
+
+    Moving agent i's action from u to a shifts only agent i's H1 encoder units, by the shared
+    rows W_a - W_u; the second layer's pre-activation then moves by
+    (relu(z1_i + W_a - W_u) - relu(z1_i)) @ W2_i, with W2_i agent i's [H1, H2] slice of it. So
+    the encoder and the second layer run once, on x, and each kept variant costs one H1 x H2
+    product (its agent's slice, rows grouped by agent) before the layers above, never the
+    dense [N*H1, H2] one. The entries `keep` leaves out and the taken actions' hold Q_c(x).
+    """
+    e, m, n = actions.shape
+    enc, second = mlp.layers[0], mlp.layers[1]
+    h1, h2 = enc.hidden, second.out_features
+    with torch.no_grad():
+        if first_preactivation is None:
+            first_preactivation = mlp.first(x)
+        z1 = first_preactivation.view(e, m, n, h1)
+        act1 = torch.relu(z1)
+        z2 = torch.baddbmm(second.bias, act1.view(e, m, n * h1), second.weight)  # [E, M, H2]
+        q_x = _upper_layers(mlp, z2, start=2) if value is None else value  # [E, M]
+        out = q_x.view(e, m, 1, 1).expand(e, m, n, a).clone()
+        w_act = enc.block_weight[:, action_offset : action_offset + a]  # [E, A, H1]
+        members = torch.arange(e, device=actions.device).view(e, 1, 1) * a
+        taken = w_act.reshape(e * a, h1).index_select(0, (actions + members).view(-1))
+        base = z1 - taken.view(e, m, n, h1)  # the pre-activation without any action row
+        w2 = second.weight.view(e, n, h1, h2)
+        todo = torch.ones_like(out, dtype=torch.bool) if keep is None else keep.clone()
+        todo.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)  # the taken: Q_c(x)
+        for k in range(e):
+            agent, row, act = todo[k].permute(1, 0, 2).nonzero().unbind(1)  # agent-major
+            if agent.numel() == 0:
+                continue
+            unit = row * n + agent  # (row, agent) as a row of [M*N, H1]; index_select, as
+            # advanced indexing with two index tensors is several times slower here
+            moved = base[k].reshape(m * n, h1).index_select(0, unit)
+            moved.add_(w_act[k].index_select(0, act)).relu_()
+            moved.sub_(act1[k].reshape(m * n, h1).index_select(0, unit))
+            z = z2[k].index_select(0, row)  # [R, H2]: the moved agent's change added in place
+            lo = 0
+            for i, count in enumerate(torch.bincount(agent, minlength=n).tolist()):
+                if count:
+                    z[lo : lo + count].addmm_(moved[lo : lo + count], w2[k, i])
+                    lo += count
+            for layer in mlp.layers[2:]:
+                z = torch.addmm(layer.bias[k], z.relu_(), layer.weight[k])
+            out[k, row, agent, act] = z.squeeze(-1)
+    return out
+
+
+def _upper_layers(
+    mlp: MLP, z1: torch.Tensor, in_place: bool = False, start: int = 1
+) -> torch.Tensor:
+    """The critic above layer `start - 1`, from that layer's pre-activations [E, R, H] -> [E, R]
     (`in_place`: z1 may be overwritten; every later activation is, as nothing else holds it)."""
     z = z1
-    for k, layer in enumerate(mlp.layers[1:]):
+    for k, layer in enumerate(mlp.layers[start:]):
         a = torch.relu_(z) if in_place or k > 0 else torch.relu(z)
         z = torch.bmm(a, layer.weight).add_(layer.bias)
     return z.squeeze(-1)
@@ -392,9 +552,9 @@ def lrp_difference(
         for k in range(len(mlp.layers) - 1, -1, -1):
             layer = mlp.layers[k]
             da = acts[k] - refs[k]
-            dz = torch.bmm(da, layer.weight)
+            dz = _times_weight(layer, da)
             s = relevance / _stabilise(dz, eps)
-            relevance = da * torch.bmm(s, layer.weight.transpose(1, 2))
+            relevance = da * _times_weight_t(layer, s)
         dx = (x - x_ref).abs()
         total = dx.sum(-1, keepdim=True)
         share = torch.where(total > 0, dx / total.clamp_min(1e-12), torch.zeros_like(dx))

@@ -74,6 +74,18 @@ class AgentBlockLinear(nn.Module):
         out = torch.baddbmm(self.block_bias, xb, self.block_weight)
         return out.view(e, m, self.out_features)
 
+    def matmul(self, x: torch.Tensor) -> torch.Tensor:
+        """x @ weight without the bias, block by block: [E, M, N*block] -> [E, M, N*H]."""
+        e, m, _ = x.shape
+        out = torch.bmm(x.reshape(e, m * self.n_agents, self.block), self.block_weight)
+        return out.view(e, m, self.out_features)
+
+    def matmul_t(self, s: torch.Tensor) -> torch.Tensor:
+        """s @ weightᵀ, block by block (LRP's way back): [E, M, N*H] -> [E, M, N*block]."""
+        e, m, _ = s.shape
+        sb = s.reshape(e, m * self.n_agents, self.hidden)
+        return torch.bmm(sb, self.block_weight.transpose(1, 2)).view(e, m, self.in_features)
+
 
 class EnsembleGRUCell(nn.Module):
     """E independent GRU cells (PyTorch's gate equations). Shapes: x [E, M, in], h [E, M, H]."""
@@ -156,7 +168,8 @@ class MLP(nn.Module):
     Shapes: x [E, M, in] -> [E, M, out]. `layers` is exposed for LRP. With `first` given
     (e.g. an `AgentBlockLinear`), that layer comes first and `in_features` is ignored. An
     `AgentBlocks` input (RDN's critic input, kept as its parts) goes through the first layer by
-    `block_preactivation`, which multiplies each observation once instead of the dense input.
+    `block_preactivation` (an `AgentBlockLinear` first layer: `encoder_preactivation`), which
+    multiplies each observation once instead of the dense input.
     """
 
     def __init__(
@@ -177,6 +190,8 @@ class MLP(nn.Module):
     def first(self, x: torch.Tensor) -> torch.Tensor:
         """The first layer's pre-activation, [E, M, hidden[0]]."""
         if isinstance(x, AgentBlocks):
+            if isinstance(self.layers[0], AgentBlockLinear):
+                return encoder_preactivation(self.layers[0], x)
             return block_preactivation(self.layers[0], x)
         return self.layers[0](x)
 
@@ -210,6 +225,31 @@ def block_preactivation(
     if proj is None:
         return _BlockLayer.apply(layer.weight, layer.bias, x)
     return _preactivation(layer.weight, layer.bias, x, proj)
+
+
+def encoder_preactivation(layer: AgentBlockLinear, x: AgentBlocks) -> torch.Tensor:
+    """layer(x) for an AgentBlocks x, [E, M, N*H], differentiable in the layer's weights,
+    without the dense x: every observation of the series (the window's earliest steps
+    zero-padded) is multiplied once by the shared weights of all W window slots, each window
+    sums its slots' products, and the one-hots are row look-ups."""
+    hist = x.hist
+    e, b, _, n, o = hist.obs.shape
+    w, tp, a, h = x.window, x.steps, x.n_actions, layer.hidden
+    first = hist.start - (w - 1)  # the series row of the first window's oldest slot
+    series = hist.obs[:, :, max(first, 0) : hist.start + tp]
+    if first < 0:
+        series = F.pad(series, (0, 0, 0, 0, -first, 0))
+    weight = layer.block_weight
+    w_obs = weight[:, : w * o].view(e, w, o, h).transpose(1, 2).reshape(e, o, w * h)
+    proj = torch.bmm(series.reshape(e, -1, o), w_obs).view(e, b, tp + w - 1, n, w, h)
+    z = proj[:, :, 0:tp, :, 0]
+    for k in range(1, w):
+        z = z + proj[:, :, k : k + tp, :, k]
+    members = torch.arange(e, device=weight.device).view(e, 1, 1, 1) * a
+    rows = (x.actions + members).reshape(-1)
+    z = z + weight[:, w * o : w * o + a].reshape(e * a, h).index_select(0, rows).view_as(z)
+    z = z + weight[:, w * o + a :].view(e, 1, 1, n, h) + layer.block_bias.view(e, 1, 1, 1, h)
+    return z.reshape(e, b * tp, n * h)
 
 
 # block_dot builds each agent's first-layer contribution c when the live (row, window slot)

@@ -46,6 +46,7 @@ from learner.common import (
 from learner.lrp import (
     LRP_RULES,
     BlockRelevance,
+    EncoderRelevance,
     agent_relevance,
     agent_relevance_all_actions,
     critic_all_actions,
@@ -297,7 +298,8 @@ class RDNLearner(AgentCriticLearner):
         cfg, n = self.cfg, self.info.n_agents
         if cfg.lrp_reference == "zero":
             relevance, q = lrp_epsilon(self.split_module, x, cfg.lrp_eps, cfg.lrp_rule)
-            first = relevance.first_preactivation if isinstance(relevance, BlockRelevance) else None
+            structured = isinstance(relevance, BlockRelevance | EncoderRelevance)
+            first = relevance.first_preactivation if structured else None
             return agent_relevance(relevance, n), q, first
         e, m, _ = x.shape
         start = cfg.obs_window * self.info.obs_dim

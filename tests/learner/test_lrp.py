@@ -180,11 +180,20 @@ def test_rdn_agent_targets_add_up_to_the_critic_value(reference, targets):
     assert metrics["lrp_conservation_gap"] < 1e-3
 
 
-def test_critic_all_actions_is_the_critic_on_each_counterfactual():
+def _critic(e: int, n: int, block: int, encoder: bool) -> MLP:
+    """A 8-8-1 critic, on the concatenated blocks or above a shared per-agent encoder."""
+    from learner.networks import AgentBlockLinear
+
+    first = AgentBlockLinear(e, n, block, 6) if encoder else None
+    return MLP(e, n * block, (8, 8), 1, first)
+
+
+@pytest.mark.parametrize("encoder", [False, True], ids=["dense", "agent_encoder"])
+def test_critic_all_actions_is_the_critic_on_each_counterfactual(encoder):
     torch.manual_seed(2)
     e, m, n, a, obs = 2, 4, 3, 5, 4
     block = obs + a + n
-    mlp = MLP(e, n * block, (8, 8), 1)
+    mlp = _critic(e, n, block, encoder)
     o = torch.randn(e, m, n, obs)
     acts = torch.randint(0, a, (e, m, n))
 
@@ -196,12 +205,13 @@ def test_critic_all_actions_is_the_critic_on_each_counterfactual():
             torch.testing.assert_close(got[..., i, u], mlp(_blocks(o, alt, a)).squeeze(-1))
 
 
-def test_critic_all_actions_on_selected_variants_only():
+@pytest.mark.parametrize("encoder", [False, True], ids=["dense", "agent_encoder"])
+def test_critic_all_actions_on_selected_variants_only(encoder):
     """With `keep`, the kept entries are the critic on those counterfactuals and every other
     entry is the critic's value of x itself; members may keep different numbers."""
     torch.manual_seed(5)
     e, m, n, a, obs = 3, 6, 3, 5, 4
-    mlp = MLP(e, n * (obs + a + n), (8, 8), 1)
+    mlp = _critic(e, n, obs + a + n, encoder)
     o = torch.randn(e, m, n, obs)
     acts = torch.randint(0, a, (e, m, n))
     x = _blocks(o, acts, a)
@@ -267,6 +277,41 @@ def test_lrp_through_an_agent_encoder_conserves_and_matches_the_shortcuts():
         torch.testing.assert_close(got, agent_relevance(rel_alt, n)[..., (i + 1) % n])
         got_q = values[..., (i + 1) % n, :].gather(-1, u.unsqueeze(-1)).squeeze(-1)
         torch.testing.assert_close(got_q, q_alt)
+
+
+@pytest.mark.parametrize("rule", ["eps_residual", "eps", "eps_nobias", "grad_x_input"])
+def test_lrp_through_an_agent_encoder_is_lrp_through_its_dense_block_diagonal_layer(rule):
+    """The encoder's shortcut (per-agent sums from its pre-activations, never a product by
+    the weights) gives the relevance that the plain dense path gives on the same critic with
+    its first layer written out as the dense block-diagonal layer, per agent and per feature;
+    from the AgentBlocks input RDN passes too."""
+    from learner.batch import AgentBlocks, agent_blocks, obs_history
+    from learner.networks import EnsembleLinear
+
+    torch.manual_seed(6)
+    e, m, n, a, obs = 2, 7, 3, 4, 5
+    block = obs + a + n
+    encoded = _critic(e, n, block, encoder=True)
+    first = EnsembleLinear(e, n * block, encoded.layers[0].out_features)
+    dense = MLP(e, n * block, (8, 8), 1, first)
+    with torch.no_grad():
+        first.weight.copy_(encoded.layers[0].weight)
+        first.bias.copy_(encoded.layers[0].bias)
+        for k in (1, 2, 3):
+            dense.layers[k].load_state_dict(encoded.layers[k].state_dict())
+    o = torch.randn(e, m, n, obs)
+    o[0, 2, 1] = 0.0  # a dead agent's observation
+    acts = torch.randint(0, a, (e, m, n))
+    want, q_want = lrp_epsilon(dense, _blocks(o, acts, a), rule=rule)
+    lazy = agent_blocks(obs_history(o[:, None], 1), acts[:, None], a, 1)
+    assert isinstance(lazy, AgentBlocks)
+    for x in (_blocks(o, acts, a), lazy):
+        got, q = lrp_epsilon(encoded, x, rule=rule)
+        # z1 - b against x @ W (eps_nobias): the same sums rounded differently
+        close = {"rtol": 1e-4, "atol": 1e-4}
+        torch.testing.assert_close(q, q_want)
+        torch.testing.assert_close(agent_relevance(got, n), agent_relevance(want, n), **close)
+        torch.testing.assert_close(got + 0.0, want, **close)  # the dense values, materialised
 
 
 def test_rdn_with_an_agent_encoder_steps_and_rejects_a_negative_width():

@@ -20,7 +20,7 @@ from learner.batch import (
     obs_history,
 )
 from learner.lrp import LRP_RULES, BlockRelevance, agent_relevance, lrp_epsilon
-from learner.networks import MLP, AgentNet, unroll
+from learner.networks import MLP, AgentBlockLinear, AgentNet, unroll
 
 
 def reference_agent_inputs(obs: torch.Tensor, actions: torch.Tensor, a: int) -> torch.Tensor:
@@ -109,12 +109,16 @@ def _batch(seed: int = 0, e: int = 2, b: int = 3, t: int = 7, n: int = 4, o: int
     return obs, actions
 
 
-def _mlp(e: int, d: int, seed: int = 0) -> MLP:
+def _mlp(e: int, d: int, seed: int = 0, encoder_agents: int = 0) -> MLP:
+    """A 16-8-1 critic; with encoder_agents = N, above a shared 6-unit per-agent encoder."""
     torch.manual_seed(seed)
-    mlp = MLP(e, d, (16, 8), 1)
+    n = encoder_agents
+    first = AgentBlockLinear(e, n, d // n, 6) if n else None
+    mlp = MLP(e, d, (16, 8), 1, first)
     with torch.no_grad():
-        for layer in mlp.layers:
-            layer.bias.normal_(0.0, 0.5)
+        for p in mlp.parameters():
+            if p.shape[-2] == 1:  # the biases
+                p.normal_(0.0, 0.5)
     return mlp
 
 
@@ -134,9 +138,10 @@ def test_obs_history_holds_the_concatenated_windows_and_slices_stay_lazy(window)
     torch.testing.assert_close(hist[0], ref[0], rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("encoder", [False, True], ids=["dense_first", "agent_encoder"])
 @pytest.mark.parametrize("window", [1, 3])
 @pytest.mark.parametrize("part", ["now", "next"])
-def test_critic_forward_and_gradients_match_the_dense_input(window, part):
+def test_critic_forward_and_gradients_match_the_dense_input(window, part, encoder):
     obs, actions = _batch(window)
     a = 4
     hist = obs_history(obs, window)
@@ -145,7 +150,7 @@ def test_critic_forward_and_gradients_match_the_dense_input(window, part):
     x = agent_blocks(hist[:, :, sl], acts, a, window)
     dense = reference_critic_inputs(reference_obs_history(obs, window)[:, :, sl], acts, a)
     assert isinstance(x, AgentBlocks) and x.shape == dense.shape
-    mlp = _mlp(2, dense.shape[-1])
+    mlp = _mlp(2, dense.shape[-1], encoder_agents=4 if encoder else 0)
     y, y_ref = mlp(x), mlp(dense)
     _close(y, y_ref)
     grads = torch.autograd.grad(y.pow(2).sum(), list(mlp.parameters()))
