@@ -414,11 +414,11 @@ def _critic_all_actions_encoder(
     """`critic_all_actions` for a critic whose first layer is an `AgentBlockLinear` encoder.
 
     Moving agent i's action from u to a shifts only agent i's H1 encoder units, by the shared
-    rows W_a - W_u; the second layer's pre-activation then moves by
-    (relu(z1_i + W_a - W_u) - relu(z1_i)) @ W2_i, with W2_i agent i's [H1, H2] slice of it. So
-    the encoder and the second layer run once, on x, and each kept variant costs one H1 x H2
-    product (its agent's slice, rows grouped by agent) before the layers above, never the
-    dense [N*H1, H2] one. The entries `keep` leaves out and the taken actions' hold Q_c(x).
+    rows W_a - W_u; in the second layer's pre-activation z2 = b2 + Σ_j relu(z1_j) @ W2_j (W2_j:
+    agent j's [H1, H2] slice), only agent i's term changes, to relu(z1_i + W_a - W_u) @ W2_i.
+    So the encoder and every agent's term run once, on x, and each kept variant costs one
+    H1 x H2 product (its agent's slice, rows grouped by agent) before the layers above, never
+    the dense [N*H1, H2] one. The entries `keep` leaves out and the taken actions' hold Q_c(x).
     """
     e, m, n = actions.shape
     enc, second = mlp.layers[0], mlp.layers[1]
@@ -427,27 +427,32 @@ def _critic_all_actions_encoder(
         if first_preactivation is None:
             first_preactivation = mlp.first(x)
         z1 = first_preactivation.view(e, m, n, h1)
-        act1 = torch.relu(z1)
-        z2 = torch.baddbmm(second.bias, act1.view(e, m, n * h1), second.weight)  # [E, M, H2]
+        w2 = second.weight.view(e, n, h1, h2)
+        # each agent's part of the second layer, relu(z1_i) @ W2_i, [E, N, M, H2]: z2 is their
+        # sum plus the bias, and z2 without agent i's part is what a move of i's action adds to
+        own = torch.bmm(z1.relu().transpose(1, 2).reshape(e * n, m, h1), w2.view(e * n, h1, h2))
+        own = own.view(e, n, m, h2)
+        z2 = own.sum(1) + second.bias  # [E, M, H2]
+        rest = z2.unsqueeze(2) - own.transpose(1, 2)  # [E, M, N, H2]
         q_x = _upper_layers(mlp, z2, start=2) if value is None else value  # [E, M]
         out = q_x.view(e, m, 1, 1).expand(e, m, n, a).clone()
         w_act = enc.block_weight[:, action_offset : action_offset + a]  # [E, A, H1]
         members = torch.arange(e, device=actions.device).view(e, 1, 1) * a
         taken = w_act.reshape(e * a, h1).index_select(0, (actions + members).view(-1))
         base = z1 - taken.view(e, m, n, h1)  # the pre-activation without any action row
-        w2 = second.weight.view(e, n, h1, h2)
         todo = torch.ones_like(out, dtype=torch.bool) if keep is None else keep.clone()
         todo.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)  # the taken: Q_c(x)
         for k in range(e):
             agent, row, act = todo[k].permute(1, 0, 2).nonzero().unbind(1)  # agent-major
             if agent.numel() == 0:
                 continue
-            unit = row * n + agent  # (row, agent) as a row of [M*N, H1]; index_select, as
-            # advanced indexing with two index tensors is several times slower here
-            moved = base[k].reshape(m * n, h1).index_select(0, unit)
-            moved.add_(w_act[k].index_select(0, act)).relu_()
-            moved.sub_(act1[k].reshape(m * n, h1).index_select(0, unit))
-            z = z2[k].index_select(0, row)  # [R, H2]: the moved agent's change added in place
+            unit = row * n + agent  # (row, agent) as a row of [M*N, .]
+            # relu(z1_i - W_u + W_a): two rows of one table summed (index_select / embedding
+            # look-ups; advanced indexing with two index tensors is several times slower)
+            table = torch.cat([base[k].reshape(m * n, h1), w_act[k]])
+            pairs = torch.stack([unit, act + m * n], 1)
+            moved = F.embedding_bag(pairs, table, mode="sum").relu_()
+            z = rest[k].reshape(m * n, h2).index_select(0, unit)  # [R, H2], added to in place
             lo = 0
             for i, count in enumerate(torch.bincount(agent, minlength=n).tolist()):
                 if count:
