@@ -101,6 +101,7 @@ SEED_RDN = {
     "lr": 5e-4,
     "agent_lr_scale": 1.0,
     "obs_window": 4,
+    "critic_agent_encoder": 0,
     "split_actions": "taken",
 }
 
@@ -113,11 +114,9 @@ def rdn_keys(cfg) -> dict:
 def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_one_key_away(env):
     shipped = load_train_config("rdn", env, [], [])
     assert shipped.recipe == "shipped"
-    assert (shipped.algo.agent_targets, shipped.algo.td_lambda, shipped.algo.lr) == (
-        "counterfactual",
-        0.8,
-        1e-3,
-    )
+    got = (shipped.algo.agent_targets, shipped.algo.td_lambda, shipped.algo.lr)
+    assert got == ("counterfactual", 0.8, 1e-3)
+    assert (shipped.algo.obs_window, shipped.algo.critic_agent_encoder) == (1, 64)
     seed = load_train_config("rdn", env, [], ["recipe=seed"])
     assert seed.recipe == "seed" and rdn_keys(seed.algo) == SEED_RDN
     # the recipe is a layer under the user's overrides, and it is recorded for resuming
