@@ -245,10 +245,15 @@ def encoder_preactivation(layer: AgentBlockLinear, x: AgentBlocks) -> torch.Tens
     z = proj[:, :, 0:tp, :, 0]
     for k in range(1, w):
         z = z + proj[:, :, k : k + tp, :, k]
-    members = torch.arange(e, device=weight.device).view(e, 1, 1, 1) * a
-    rows = (x.actions + members).reshape(-1)
-    z = z + weight[:, w * o : w * o + a].reshape(e * a, h).index_select(0, rows).view_as(z)
-    z = z + weight[:, w * o + a :].view(e, 1, 1, n, h) + layer.block_bias.view(e, 1, 1, 1, h)
+    # action row + id row + bias for every (member, agent, action): one look-up per entry
+    onehots = (
+        weight[:, w * o : w * o + a].view(e, 1, a, h)
+        + weight[:, w * o + a :].view(e, n, 1, h)
+        + layer.block_bias.view(e, 1, 1, h)
+    )
+    agents = torch.arange(e * n, device=weight.device).view(e, 1, 1, n) * a
+    rows = (x.actions + agents).reshape(-1)
+    z = z + onehots.reshape(e * n * a, h).index_select(0, rows).view_as(z)
     return z.reshape(e, b * tp, n * h)
 
 
