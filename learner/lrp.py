@@ -45,20 +45,6 @@ LrpRule = Literal["eps_residual", "eps", "eps_nobias", "grad_x_input"]
 LRP_RULES: tuple[str, ...] = ("eps_residual", "eps", "eps_nobias", "grad_x_input")
 
 
-def _times_weight(layer: torch.nn.Module, a: torch.Tensor) -> torch.Tensor:
-    """a @ layer.weight (no bias); an AgentBlockLinear block by block, never densely."""
-    if isinstance(layer, AgentBlockLinear):
-        return layer.matmul(a)
-    return torch.bmm(a, layer.weight)
-
-
-def _times_weight_t(layer: torch.nn.Module, s: torch.Tensor) -> torch.Tensor:
-    """s @ layer.weightᵀ; an AgentBlockLinear block by block, never densely."""
-    if isinstance(layer, AgentBlockLinear):
-        return layer.matmul_t(s)
-    return torch.bmm(s, layer.weight.transpose(1, 2))
-
-
 def _share(weight: torch.Tensor) -> torch.Tensor:
     """Each entry's fraction of its row's total (last axis), zero for an all-zero row."""
     total = weight.sum(-1, keepdim=True)
@@ -99,11 +85,11 @@ def lrp_epsilon(
         out = acts[-1]
         relevance = out
         for layer, a in zip(reversed(mlp.layers), reversed(acts[:-1]), strict=True):
-            z = _times_weight(layer, a)
+            z = layer.matmul(a)
             if rule != "eps_nobias":
                 z = z + layer.bias
             s = relevance / _stabilise(z, eps)
-            relevance = a * _times_weight_t(layer, s)
+            relevance = a * layer.matmul_t(s)
         out = out.squeeze(-1)
         if rule == "eps_residual":
             residual = out - relevance.sum(-1)
@@ -113,7 +99,16 @@ def lrp_epsilon(
     return relevance, out
 
 
-class BlockRelevance(LazyTensor):
+class AgentRelevance(LazyTensor):
+    """LRP relevance of a critic input that already knows each agent's sum, `per_agent`
+    [E, M, N], and the critic's first layer on x, `first_preactivation` (which
+    `critic_all_actions` reuses); the dense values are computed only if used as a tensor."""
+
+    per_agent: torch.Tensor
+    first_preactivation: torch.Tensor
+
+
+class BlockRelevance(AgentRelevance):
     """LRP relevance [E, M, N*block] of an `AgentBlocks` input, kept as each agent's sum
     (`per_agent` [E, M, N]) and what the dense values need: relevance = x * (s @ W1ᵀ), plus
     for eps_residual the residual spread over the inputs in proportion to |x_j|.
@@ -208,7 +203,7 @@ def _first_layer_ratios(
     return s1, out.squeeze(-1)
 
 
-class EncoderRelevance(LazyTensor):
+class EncoderRelevance(AgentRelevance):
     """LRP relevance [E, M, N*block] of the dense input x of a critic whose first layer is an
     `AgentBlockLinear` encoder, kept as each agent's sum (`per_agent` [E, M, N]): unit k of
     agent i sees only agent i's block, so that block's first-layer relevance is
@@ -290,8 +285,7 @@ def agent_relevance(relevance: torch.Tensor, n_agents: int) -> torch.Tensor:
     e, m, d = relevance.shape
     if d % n_agents:
         raise ValueError(f"input width {d} is not a multiple of n_agents={n_agents}")
-    structured = isinstance(relevance, BlockRelevance | EncoderRelevance)
-    if structured and relevance.per_agent.shape[-1] == n_agents:
+    if isinstance(relevance, AgentRelevance) and relevance.per_agent.shape[-1] == n_agents:
         return relevance.per_agent
     return relevance.view(e, m, n_agents, d // n_agents).sum(-1)
 
@@ -557,9 +551,9 @@ def lrp_difference(
         for k in range(len(mlp.layers) - 1, -1, -1):
             layer = mlp.layers[k]
             da = acts[k] - refs[k]
-            dz = _times_weight(layer, da)
+            dz = layer.matmul(da)
             s = relevance / _stabilise(dz, eps)
-            relevance = da * _times_weight_t(layer, s)
+            relevance = da * layer.matmul_t(s)
         dx = (x - x_ref).abs()
         total = dx.sum(-1, keepdim=True)
         share = torch.where(total > 0, dx / total.clamp_min(1e-12), torch.zeros_like(dx))

@@ -35,6 +35,14 @@ class EnsembleLinear(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.baddbmm(self.bias, x, self.weight)
 
+    def matmul(self, x: torch.Tensor) -> torch.Tensor:
+        """x @ weight without the bias (LRP's way forward): [E, M, in] -> [E, M, out]."""
+        return torch.bmm(x, self.weight)
+
+    def matmul_t(self, s: torch.Tensor) -> torch.Tensor:
+        """s @ weightᵀ (LRP's way back): [E, M, out] -> [E, M, in]."""
+        return torch.bmm(s, self.weight.transpose(1, 2))
+
 
 class AgentBlockLinear(nn.Module):
     """One affine map shared by N agents' input blocks laid end to end: agent i's block

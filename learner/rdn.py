@@ -45,8 +45,7 @@ from learner.common import (
 )
 from learner.lrp import (
     LRP_RULES,
-    BlockRelevance,
-    EncoderRelevance,
+    AgentRelevance,
     agent_relevance,
     agent_relevance_all_actions,
     critic_all_actions,
@@ -298,7 +297,7 @@ class RDNLearner(AgentCriticLearner):
         cfg, n = self.cfg, self.info.n_agents
         if cfg.lrp_reference == "zero":
             relevance, q = lrp_epsilon(self.split_module, x, cfg.lrp_eps, cfg.lrp_rule)
-            structured = isinstance(relevance, BlockRelevance | EncoderRelevance)
+            structured = isinstance(relevance, AgentRelevance)
             first = relevance.first_preactivation if structured else None
             return agent_relevance(relevance, n), q, first
         e, m, _ = x.shape
