@@ -52,8 +52,12 @@ def _share(weight: torch.Tensor) -> torch.Tensor:
 
 
 def _stabilise(z: torch.Tensor, eps: float) -> torch.Tensor:
-    """z + ε·sign(z), with sign(0) = +1 (two passes over z, not six)."""
-    return torch.where(z >= 0, eps, -eps).add_(z)
+    """z + ε·sign(z), with sign(0) = +1 for both zeros (z + 0.0 turns -0.0 into +0.0).
+
+    copysign, not `torch.where(z >= 0, ε, -ε)`: on this CPU build a boolean-mask select
+    runs about 15x slower than the three plain passes (6.2 ms against 0.4 ms on an 8m
+    batch's [3, 960, 512] first layer)."""
+    return torch.copysign(z.new_tensor(eps), z + 0.0).add_(z)
 
 
 def lrp_epsilon(
@@ -101,11 +105,14 @@ def lrp_epsilon(
 
 class AgentRelevance(LazyTensor):
     """LRP relevance of a critic input that already knows each agent's sum, `per_agent`
-    [E, M, N], and the critic's first layer on x, `first_preactivation` (which
-    `critic_all_actions` reuses); the dense values are computed only if used as a tensor."""
+    [E, M, N], and the forward pass LRP made on x, which `critic_all_actions` reuses: the
+    critic's first layer, `first_preactivation`, and, for a critic with an encoder, its second,
+    `second_preactivation` (None otherwise). The dense values are computed only if used as a
+    tensor."""
 
     per_agent: torch.Tensor
     first_preactivation: torch.Tensor
+    second_preactivation: torch.Tensor | None = None
 
 
 class BlockRelevance(AgentRelevance):
@@ -170,7 +177,7 @@ def _lrp_blocks(
             per_agent = block_dot(first, x, s1, proj)
         return BlockRelevance(x, per_agent, s1, first.weight.detach(), None, z1), out
     with torch.no_grad():
-        s1, out = _first_layer_ratios(mlp, z1, eps, rule)
+        s1, out, _ = _first_layer_ratios(mlp, z1, eps, rule)
         per_agent = block_dot(first, x, s1, proj)  # [E, M, N]
         residual = None
         if rule == "eps_residual":
@@ -183,10 +190,11 @@ def _lrp_blocks(
 
 def _first_layer_ratios(
     mlp: MLP, z1: torch.Tensor, eps: float, rule: LrpRule
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ε-rule from the output down to the first layer, given that layer's pre-activation
-    z1 [E, M, H]: (s1 = R1 / (z1 + ε·sign(z1)) [E, M, H], the critic's output [E, M]); the
-    first layer's input relevance is then x_j Σ_k w_jk s1_k."""
+    z1 [E, M, H]: (s1 = R1 / (z1 + ε·sign(z1)) [E, M, H], the critic's output [E, M], the
+    second layer's pre-activation [E, M, H2]); the first layer's input relevance is then
+    x_j Σ_k w_jk s1_k."""
     first = mlp.layers[0]
     zs, acts = [z1], []
     for layer in mlp.layers[1:]:
@@ -200,7 +208,7 @@ def _first_layer_ratios(
         s = relevance / _stabilise(z, eps)
         relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
     s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else z1 - first.bias, eps)
-    return s1, out.squeeze(-1)
+    return s1, out.squeeze(-1), zs[1]
 
 
 class EncoderRelevance(AgentRelevance):
@@ -209,7 +217,8 @@ class EncoderRelevance(AgentRelevance):
     agent i sees only agent i's block, so that block's first-layer relevance is
     Σ_k s1_ik (z1_ik - b_k), with no product by the weights. The dense values
     (x * (s1 @ W1ᵀ), plus the eps_residual spread) are computed only if used as a tensor.
-    `first_preactivation` [E, M, N*H] is the encoder on x (`critic_all_actions` reuses it)."""
+    `first_preactivation` [E, M, N*H] is the encoder on x and `second_preactivation` [E, M, H2]
+    the layer above it (`critic_all_actions` reuses both)."""
 
     def __new__(cls, x: torch.Tensor, *args, **kwargs):
         return super().__new__(cls, tuple(x.shape), x)
@@ -222,10 +231,12 @@ class EncoderRelevance(AgentRelevance):
         s1: torch.Tensor,
         residual: torch.Tensor | None,
         first_preactivation: torch.Tensor,
+        second_preactivation: torch.Tensor,
     ):
         super().__init__(tuple(x.shape), x)
         self.x, self.layer, self.per_agent, self.s1 = x, layer, per_agent, s1
         self.residual, self.first_preactivation = residual, first_preactivation
+        self.second_preactivation = second_preactivation
         self.weight_version = layer.block_weight._version
 
     def materialise(self) -> torch.Tensor:
@@ -251,7 +262,7 @@ def _lrp_encoder(
     n, h = first.n_agents, first.hidden
     with torch.no_grad():
         z1 = mlp.first(x)
-        s1, out = _first_layer_ratios(mlp, z1, eps, rule)
+        s1, out, z2 = _first_layer_ratios(mlp, z1, eps, rule)
         contribution = (z1 - first.bias).view(e, m, n, h)  # each agent's block's, unit by unit
         per_agent = (s1.view(e, m, n, h) * contribution).sum(-1)
         residual = None
@@ -262,7 +273,7 @@ def _lrp_encoder(
             else:
                 l1 = x.abs().view(e, m, n, first.block).sum(-1)
             per_agent = per_agent + residual.unsqueeze(-1) * _share(l1)
-    return EncoderRelevance(x, first, per_agent, s1, residual, z1), out
+    return EncoderRelevance(x, first, per_agent, s1, residual, z1, z2), out
 
 
 def _grad_x_input(mlp: MLP, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -330,13 +341,13 @@ def critic_all_actions(
     action_offset: int,
     n_actions: int,
     keep: torch.Tensor | None = None,
-    first_preactivation: torch.Tensor | None = None,
+    lrp: AgentRelevance | None = None,
     value: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The critic's value with agent i's action moved to a, the others' fixed, for every
     (i, a): [E, M, N, A] (inputs as in `agent_relevance_all_actions`; x may be the critic's
-    `AgentBlocks` input; `first_preactivation` [E, M, H], the first layer on x, and `value`
-    [E, M], Q_c(x), when the caller has them, e.g. from `lrp_epsilon`).
+    `AgentBlocks` input; `lrp`, the relevance `lrp_epsilon` returned for this critic and x,
+    whose forward pass is reused, and `value` [E, M], Q_c(x), when the caller has them).
 
     The first layer is linear, so moving agent i's action from u to a shifts its
     pre-activation by W_i,a - W_i,u: the first layer runs once, on x, and only the layers above
@@ -347,11 +358,9 @@ def critic_all_actions(
     e, m, n = actions.shape
     a = n_actions
     if isinstance(mlp.layers[0], AgentBlockLinear):
-        return _critic_all_actions_encoder(
-            mlp, x, actions, action_offset, a, keep, first_preactivation, value
-        )
+        return _critic_all_actions_encoder(mlp, x, actions, action_offset, a, keep, lrp, value)
     with torch.no_grad():
-        z1 = mlp.first(x) if first_preactivation is None else first_preactivation  # [E, M, H]
+        z1 = mlp.first(x) if lrp is None else lrp.first_preactivation  # [E, M, H]
         h = z1.shape[-1]
         first = mlp.layers[0]
         w_act = first.weight.view(e, n, -1, h)[:, :, action_offset : action_offset + a]
@@ -402,51 +411,49 @@ def _critic_all_actions_encoder(
     action_offset: int,
     a: int,
     keep: torch.Tensor | None,
-    first_preactivation: torch.Tensor | None,
+    lrp: AgentRelevance | None,
     value: torch.Tensor | None,
 ) -> torch.Tensor:
     """`critic_all_actions` for a critic whose first layer is an `AgentBlockLinear` encoder.
 
     Moving agent i's action from u to a shifts only agent i's H1 encoder units, by the shared
     rows W_a - W_u; in the second layer's pre-activation z2 = b2 + Σ_j relu(z1_j) @ W2_j (W2_j:
-    agent j's [H1, H2] slice), only agent i's term changes, to relu(z1_i + W_a - W_u) @ W2_i.
-    So the encoder and every agent's term run once, on x, and each kept variant costs one
-    H1 x H2 product (its agent's slice, rows grouped by agent) before the layers above, never
-    the dense [N*H1, H2] one. The entries `keep` leaves out and the taken actions' hold Q_c(x).
+    agent j's [H1, H2] slice), only agent i's term changes, so the moved pre-activation is
+    z2 + (relu(z1_i + W_a - W_u) - relu(z1_i)) @ W2_i. The encoder and the second layer run
+    once, on x (or come from `lrp`), and each kept variant costs one H1 x H2 product (its
+    agent's slice, rows grouped by agent) before the layers above, never the dense
+    [N*H1, H2] one. The entries `keep` leaves out and the taken actions' hold Q_c(x).
     """
     e, m, n = actions.shape
     enc, second = mlp.layers[0], mlp.layers[1]
     h1, h2 = enc.hidden, second.out_features
     with torch.no_grad():
-        if first_preactivation is None:
-            first_preactivation = mlp.first(x)
-        z1 = first_preactivation.view(e, m, n, h1)
-        w2 = second.weight.view(e, n, h1, h2)
-        # each agent's part of the second layer, relu(z1_i) @ W2_i, [E, N, M, H2]: z2 is their
-        # sum plus the bias, and z2 without agent i's part is what a move of i's action adds to
-        own = torch.bmm(z1.relu().transpose(1, 2).reshape(e * n, m, h1), w2.view(e * n, h1, h2))
-        own = own.view(e, n, m, h2)
-        z2 = own.sum(1) + second.bias  # [E, M, H2]
-        rest = z2.unsqueeze(2) - own.transpose(1, 2)  # [E, M, N, H2]
+        if lrp is None or lrp.second_preactivation is None:
+            z1 = mlp.first(x)
+            z2 = second(torch.relu(z1))
+        else:
+            z1, z2 = lrp.first_preactivation, lrp.second_preactivation  # [E, M, N*H1], [E, M, H2]
         q_x = _upper_layers(mlp, z2, start=2) if value is None else value  # [E, M]
         out = q_x.view(e, m, 1, 1).expand(e, m, n, a).clone()
-        w_act = enc.block_weight[:, action_offset : action_offset + a]  # [E, A, H1]
-        members = torch.arange(e, device=actions.device).view(e, 1, 1) * a
-        taken = w_act.reshape(e * a, h1).index_select(0, (actions + members).view(-1))
-        base = z1 - taken.view(e, m, n, h1)  # the pre-activation without any action row
+        w2 = second.weight.view(e, n, h1, h2)
+        # one table of every member's encoder rows (row (k*M + r)*N + i) and action rows
+        # (row E*M*N + k*A + a): z1_i - W_u + W_a is a signed sum of three of its rows
+        w_act = enc.block_weight[:, action_offset : action_offset + a].reshape(e * a, h1)
+        table = torch.cat([z1.reshape(e * m * n, h1), w_act])
         todo = torch.ones_like(out, dtype=torch.bool) if keep is None else keep.clone()
         todo.view(-1, a).scatter_(1, actions.reshape(-1, 1), False)  # the taken: Q_c(x)
         for k in range(e):
             agent, row, act = todo[k].permute(1, 0, 2).nonzero().unbind(1)  # agent-major
             if agent.numel() == 0:
                 continue
-            unit = row * n + agent  # (row, agent) as a row of [M*N, .]
-            # relu(z1_i - W_u + W_a): two rows of one table summed (index_select / embedding
-            # look-ups; advanced indexing with two index tensors is several times slower)
-            table = torch.cat([base[k].reshape(m * n, h1), w_act[k]])
-            pairs = torch.stack([unit, act + m * n], 1)
-            moved = F.embedding_bag(pairs, table, mode="sum").relu_()
-            z = rest[k].reshape(m * n, h2).index_select(0, unit)  # [R, H2], added to in place
+            unit = (k * m + row) * n + agent  # the (row, agent) encoder row in the table
+            taken = actions[k].reshape(m * n).index_select(0, unit - k * m * n)
+            actions_row = e * m * n + k * a
+            triples = torch.stack([unit, actions_row + taken, actions_row + act], 1)
+            signs = table.new_tensor([1.0, -1.0, 1.0]).expand(triples.shape[0], 3)
+            moved = F.embedding_bag(triples, table, mode="sum", per_sample_weights=signs)
+            moved.relu_().sub_(table.index_select(0, unit).relu_())  # the change of relu(z1_i)
+            z = z2[k].index_select(0, row)  # [R, H2], added to in place
             lo = 0
             for i, count in enumerate(torch.bincount(agent, minlength=n).tolist()):
                 if count:

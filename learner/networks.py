@@ -237,32 +237,35 @@ def block_preactivation(
 
 def encoder_preactivation(layer: AgentBlockLinear, x: AgentBlocks) -> torch.Tensor:
     """layer(x) for an AgentBlocks x, [E, M, N*H], differentiable in the layer's weights,
-    without the dense x: every observation of the series (the window's earliest steps
-    zero-padded) is multiplied once by the shared weights of all W window slots, each window
-    sums its slots' products, and the one-hots are row look-ups."""
-    hist = x.hist
-    e, b, _, n, o = hist.obs.shape
-    w, tp, a, h = x.window, x.steps, x.n_actions, layer.hidden
-    first = hist.start - (w - 1)  # the series row of the first window's oldest slot
-    series = hist.obs[:, :, max(first, 0) : hist.start + tp]
-    if first < 0:
-        series = F.pad(series, (0, 0, 0, 0, -first, 0))
+    without the dense x: every non-zero observation (`AgentBlocks.alive_rows`) is multiplied
+    once by the shared weights of all W window slots and added into the windows it sits in;
+    all-zero observations (dead agents, padding: half the rows of a random-policy batch on
+    8m) are skipped, and the one-hots are row look-ups."""
+    e, m, _ = x.shape
+    n, w, o, a, h = x.n_agents, x.window, x.obs_dim, x.n_actions, layer.hidden
     weight = layer.block_weight
-    w_obs = weight[:, : w * o].view(e, w, o, h).transpose(1, 2).reshape(e, o, w * h)
-    proj = torch.bmm(series.reshape(e, -1, o), w_obs).view(e, b, tp + w - 1, n, w, h)
-    z = proj[:, :, 0:tp, :, 0]
-    for k in range(1, w):
-        z = z + proj[:, :, k : k + tp, :, k]
-    # action row + id row + bias for every (member, agent, action): one look-up per entry
+    # action row + id row + bias for every (member, agent, action), then one zero row: the
+    # one-hot part of every entry is one look-up, and the extra entry (where windows outside
+    # these steps are added) is zero
     onehots = (
         weight[:, w * o : w * o + a].view(e, 1, a, h)
         + weight[:, w * o + a :].view(e, n, 1, h)
         + layer.block_bias.view(e, 1, 1, h)
     )
+    table = torch.cat([onehots.reshape(e * n * a, h), weight.new_zeros(1, h)])
     agents = torch.arange(e * n, device=weight.device).view(e, 1, 1, n) * a
-    rows = (x.actions + agents).reshape(-1)
-    z = z + onehots.reshape(e * n * a, h).index_select(0, rows).view_as(z)
-    return z.reshape(e, b * tp, n * h)
+    rows = F.pad((x.actions + agents).reshape(-1), (0, 1), value=e * n * a)
+    z = table.index_select(0, rows)  # [E*M*N + 1, H]
+    obs, counts, to_agent, _ = x.alive_rows()  # sorted by member first
+    w_obs = weight[:, : w * o].view(e, w, o, h).transpose(1, 2).reshape(e, o, w * h)
+    lo = 0
+    for k in range(e):
+        count = sum(counts[k * n : (k + 1) * n])
+        if count:
+            proj = obs[lo : lo + count] @ w_obs[k]  # [K_k, W*H], slot-major
+            z.index_add_(0, to_agent[lo : lo + count].reshape(-1), proj.view(-1, h))
+            lo += count
+    return z[:-1].view(e, m, n * h)
 
 
 # block_dot builds each agent's first-layer contribution c when the live (row, window slot)

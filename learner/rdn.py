@@ -27,12 +27,13 @@ import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
 from learner.batch import (
+    AllSteps,
+    RealSteps,
     TensorBatch,
     agent_blocks,
     agent_inputs,
     greedy_actions,
     masked_mean,
-    obs_history,
 )
 from learner.common import (
     AgentConfig,
@@ -214,6 +215,9 @@ class RDNLearner(AgentCriticLearner):
             cfg.optimiser,
         )
         self.updates = 0
+        # the critic skips padded steps where it can (`steps`); False computes them too (the
+        # same values up to float rounding: for checks)
+        self.pack_steps = True
 
     def sync_targets(self, episodes: int) -> bool:
         """Copy the critic into the target critic every target_update_episodes episodes."""
@@ -283,10 +287,10 @@ class RDNLearner(AgentCriticLearner):
         shares, q, _ = self._split(x)
         return shares, q
 
-    def _split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def _split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, AgentRelevance | None]:
         """Each agent's LRP share of the critic's value for critic inputs x [E, M, N*block]:
-        (shares [E, M, N], Q_c(x) [E, M], the critic's first-layer pre-activation on x when
-        LRP computed it on the structured input, else None).
+        (shares [E, M, N], Q_c(x) [E, M], the relevance itself when LRP ran on the structured
+        input, whose forward pass `critic_all_actions` reuses, else None).
 
         lrp_reference "zero" (the seed's): LRP-ε of Q_c(x), agent i's share the relevance of
         its block. "no_actions": the same split of Q_c(x̄), x̄ = x with every action one-hot
@@ -298,8 +302,7 @@ class RDNLearner(AgentCriticLearner):
         if cfg.lrp_reference == "zero":
             relevance, q = lrp_epsilon(self.split_module, x, cfg.lrp_eps, cfg.lrp_rule)
             structured = isinstance(relevance, AgentRelevance)
-            first = relevance.first_preactivation if structured else None
-            return agent_relevance(relevance, n), q, first
+            return agent_relevance(relevance, n), q, relevance if structured else None
         e, m, _ = x.shape
         start = cfg.obs_window * self.info.obs_dim
         x_ref = x.view(e, m, n, self.block).clone()
@@ -329,13 +332,13 @@ class RDNLearner(AgentCriticLearner):
         shares: torch.Tensor,
         q_tot: torch.Tensor,
         trained: torch.Tensor,
-        first: torch.Tensor | None = None,
+        lrp: AgentRelevance | None = None,
     ) -> torch.Tensor:
         """Targets [E, B, T, N, A] for agent_targets "all_actions" or "counterfactual" (see
         RDNConfig), from critic inputs x, the taken actions [E, B, T, N], their LRP shares
         [E, B, T, N], Q_c(x) [E, B*T] and the entries the agents' loss uses [E, B, T, N, A]
         (the counterfactual critic runs on those only; the others are not used), and the
-        critic's first layer on x if known."""
+        relevance `_split` computed on x if known."""
         e, b, t, n = actions.shape
         args = (x, actions.reshape(e, b * t, n), n, self.cfg.obs_window * self.info.obs_dim)
         if self.cfg.agent_targets == "all_actions":
@@ -345,40 +348,58 @@ class RDNLearner(AgentCriticLearner):
             return every.view(e, b, t, n, -1)
         a = self.info.n_actions
         keep = trained.view(e, b * t, n, a)
-        q_alt = critic_all_actions(self.split_module, *args, a, keep, first, q_tot)
+        q_alt = critic_all_actions(self.split_module, *args, a, keep, lrp, q_tot)
         every = q_alt.view(e, b, t, n, a).sub_(q_tot.view(e, b, t, 1, 1))  # in place: fresh
         return every.add_(shares.unsqueeze(-1))
 
+    def steps(self, tb: TensorBatch) -> AllSteps | RealSteps:
+        """The critic's layout of the batch's steps: the real steps packed together when the
+        critic sees one observation per agent (`RealSteps`, the same values without computing
+        anything for padding), else every step (`AllSteps`)."""
+        if self.cfg.obs_window == 1 and self.pack_steps:
+            return RealSteps(tb)
+        return AllSteps(tb, self.cfg.obs_window)
+
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
-        """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics."""
+        """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics.
+
+        The critic side runs on `self.steps(tb)`'s layout, [E, B', T', ...]: every step, or
+        the real steps packed; the agents' Q-values are taken into it, and the next values
+        put back for the Q(λ) targets, which need the episodes' time order."""
         tb = TensorBatch.from_episodes(batch, self.device)
-        e, b, t, n = tb.shape
-        hist = obs_history(tb.obs, self.cfg.obs_window)  # [E, B, T+1, N, W*O]
-        qs = unroll(self.agent, agent_inputs(tb.obs, tb.actions, self.info.n_actions))
-        x = self.critic_inputs(hist[:, :, :-1], tb.actions)
+        n, a = self.info.n_agents, self.info.n_actions
+        steps = self.steps(tb)
+        qs_all = unroll(self.agent, agent_inputs(tb.obs, tb.actions, a))  # [E, B, T+1, N, A]
+        qs, actions, avail = steps.take(qs_all), steps.take(tb.actions), steps.take(tb.avail)
+        e, b, t = steps.mask.shape
+        x = self.critic_inputs(steps.hist(), actions)
         with torch.no_grad():
-            v_next = self._next_value(hist[:, :, 1:], qs.detach()[:, :, 1:], tb.avail[:, :, 1:])
+            v_next = self._next_value(
+                steps.hist(1), steps.take(qs_all.detach(), 1), steps.take(tb.avail, 1)
+            )
             reward = self.reward_norm(tb.reward, tb.mask)
+            v_next = steps.put(v_next)  # [E, B, T]: the targets run along each episode
             y = q_lambda_targets(
                 reward, tb.terminated, tb.mask, v_next, self.cfg.gamma, self.cfg.td_lambda
             )
+            y = steps.take(y)
         q_c = self.critic(x).view(e, b, t)
-        critic_loss = masked_mean((q_c - y).pow(2), tb.mask)
+        critic_loss = masked_mean((q_c - y).pow(2), steps.mask)
         self.critic_updater.apply(critic_loss)
 
-        acts = self.split_joint_action(qs[:, :, :-1], tb.actions, tb.avail[:, :, :-1])
-        if acts is not tb.actions:
-            x = self.critic_inputs(hist[:, :, :-1], acts)
-        targets, q_tot, first = self._split(x)
+        acts = self.split_joint_action(qs, actions, avail)
+        if acts is not actions:
+            x = self.critic_inputs(steps.hist(), acts)
+        targets, q_tot, lrp = self._split(x)
         targets = targets.view(e, b, t, n)
         if self.cfg.agent_targets == "taken":
-            chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)
-            mask = tb.mask.unsqueeze(-1).expand_as(chosen)
+            chosen = qs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+            mask = steps.mask.unsqueeze(-1).expand_as(chosen)
             agent_loss = masked_mean((chosen - targets).pow(2), mask)
         else:  # a target for every available action of every agent
-            ok = tb.avail[:, :, :-1] & tb.mask.bool()[..., None, None]
-            every = self._every_action_targets(x, acts, targets, q_tot, ok, first)
-            agent_loss = masked_mean((qs[:, :, :-1] - every).pow(2), ok.float())
+            ok = avail & steps.mask.bool()[..., None, None]
+            every = self._every_action_targets(x, acts, targets, q_tot, ok, lrp)
+            agent_loss = masked_mean((qs - every).pow(2), ok.float())
         self.agent_updater.apply(agent_loss)
 
         self.updates += 1
@@ -386,8 +407,8 @@ class RDNLearner(AgentCriticLearner):
         return {
             "loss_critic": float(critic_loss.detach().mean()),
             "loss_agent": float(agent_loss.detach().mean()),
-            "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), tb.mask).mean()),
-            "lrp_conservation_gap": float(masked_mean(gap, tb.mask).mean()),
+            "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), steps.mask).mean()),
+            "lrp_conservation_gap": float(masked_mean(gap, steps.mask).mean()),
         }
 
     def state_dict(self) -> dict:

@@ -254,9 +254,10 @@ def test_lazy_inputs_are_read_only_and_otherwise_behave_as_dense():
 
 def _reference_learner(learner, monkeypatch) -> None:
     """Make `learner` (an RDNLearner) run the straightforward dense implementation."""
+    import learner.batch as batch
     import learner.rdn as rdn
 
-    monkeypatch.setattr(rdn, "obs_history", reference_obs_history)
+    monkeypatch.setattr(batch, "obs_history", reference_obs_history)
     monkeypatch.setattr(rdn, "agent_inputs", reference_agent_inputs)
     monkeypatch.setattr(rdn, "unroll", reference_unroll)
     monkeypatch.setattr(rdn, "lrp_epsilon", reference_lrp)
@@ -296,14 +297,96 @@ def test_rdn_updates_match_the_straightforward_implementation(rule, monkeypatch)
     targets_slow, q_slow = slow.agent_targets(slow.critic_inputs(hist.contiguous(), tb.actions))
     _close(targets_fast, targets_slow, 1e-4)
     _close(q_fast, q_slow, 1e-4)
-    for mf, ms in zip(fast_metrics, slow_metrics, strict=True):
-        assert mf.keys() == ms.keys()
-        for k in mf:
-            assert mf[k] == pytest.approx(ms[k], rel=1e-3, abs=1e-5), k
-    for pf, ps in zip(fast.critic.parameters(), slow.critic.parameters(), strict=True):
-        _close(pf, ps, 1e-4)
-    for pf, ps in zip(fast.agent.parameters(), slow.agent.parameters(), strict=True):
-        _close(pf, ps, 1e-4)
+    _same_learners(fast, slow, fast_metrics, slow_metrics, 1e-3, 1e-4)
+
+
+def _same_learners(one, two, metrics_one, metrics_two, rel: float, scale: float) -> None:
+    """Two RDN learners' metrics of every update agree to `rel` and their critics' and
+    agents' parameters to `scale` (`_close`)."""
+    for m1, m2 in zip(metrics_one, metrics_two, strict=True):
+        assert m1.keys() == m2.keys()
+        for k in m1:
+            assert m1[k] == pytest.approx(m2[k], rel=rel, abs=1e-5 * rel / 1e-3), k
+    for net in ("critic", "agent"):
+        params = zip(getattr(one, net).parameters(), getattr(two, net).parameters(), strict=True)
+        for p1, p2 in params:
+            _close(p1, p2, scale)
+
+
+def _tensor_batch(mask: torch.Tensor, n: int = 2, o: int = 3, a: int = 4):
+    """A TensorBatch with the given mask [E, B, T] and distinct values everywhere else."""
+    from learner.batch import TensorBatch
+
+    e, b, t = mask.shape
+    obs = torch.arange(e * b * (t + 1) * n * o, dtype=torch.float32).view(e, b, t + 1, n, o)
+    return TensorBatch(
+        obs=obs,
+        state=torch.zeros(e, b, t + 1, 1),
+        avail=torch.rand(e, b, t + 1, n, a) > 0.3,
+        actions=torch.randint(0, a, (e, b, t, n)),
+        reward=torch.randn(e, b, t),
+        terminated=torch.zeros(e, b, t),
+        mask=mask,
+        policy_version=torch.zeros(e, b, dtype=torch.long),
+    )
+
+
+def test_real_steps_pack_each_members_real_steps_in_order():
+    """`RealSteps` lays out each member's real steps first, in (episode, step) order, with
+    the step after each (shift 1) alongside, and puts values back where they came from."""
+    from learner.batch import RealSteps
+
+    mask = torch.tensor(
+        [[[1, 1, 1], [1, 0, 0]], [[0, 0, 0], [1, 1, 0]]], dtype=torch.float32
+    )  # member 0: 4 real steps, member 1: 2 (its first episode is empty)
+    tb = _tensor_batch(mask)
+    steps = RealSteps(tb)
+    assert steps.mask.tolist() == [[[1, 1, 1, 1]], [[1, 1, 0, 0]]]
+    real = [[(0, 0), (0, 1), (0, 2), (1, 0)], [(1, 0), (1, 1)]]
+    for shift in (0, 1):
+        got = steps.take(tb.obs, shift)  # [E, 1, K, N, O]
+        assert got.shape == (2, 1, 4, 2, 3)
+        for k, pairs in enumerate(real):
+            for j, (b, t) in enumerate(pairs):
+                assert torch.equal(got[k, 0, j], tb.obs[k, b, t + shift])
+    assert torch.equal(steps.take(tb.actions)[0, 0, 3], tb.actions[0, 1, 0])
+    values = torch.randn(2, 2, 3, 5)
+    assert torch.equal(steps.put(steps.take(values)), values * mask.unsqueeze(-1))
+    hist = steps.hist(1)  # the critic's next observations, lazily
+    assert torch.equal(hist.dense()[1, 0, 1], tb.obs[1, 1, 2])
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        dict(critic_agent_encoder=16, agent_targets="counterfactual", td_lambda=0.8),
+        dict(td_lambda=0.0, agent_targets="taken"),
+        dict(agent_targets="counterfactual", split_actions="greedy", next_action="local_max"),
+    ],
+)
+def test_rdn_on_the_real_steps_packed_matches_every_step(overrides):
+    """With one observation per agent the critic side runs on the real steps packed
+    (`RealSteps`): two learners from one initialisation, one packing them and one computing
+    every step, take the same three updates on random skirmish/3m episodes of unequal lengths
+    (2 seeds batched): their metrics and parameters agree."""
+    from actors.envs.registry import make_vec_env
+    from cluster.bench.update import record_batch
+    from learner.batch import AllSteps, RealSteps, TensorBatch
+    from learner.rdn import RDNConfig, RDNLearner
+
+    schema = make_vec_env("skirmish/3m", 1).info.schema()
+    cfg = RDNConfig(obs_window=1, agent_lr_scale=4.0, lr=1e-3, **overrides)
+    torch.manual_seed(0)
+    packed = RDNLearner(cfg, schema, n_ensemble=2)
+    torch.manual_seed(0)
+    full = RDNLearner(cfg, schema, n_ensemble=2)
+    full.pack_steps = False
+    batch = record_batch("skirmish/3m", 6, 2)
+    tb = TensorBatch.from_episodes(batch)
+    assert 0.2 < float(tb.mask.mean()) < 0.9  # a third or so of the steps are padding
+    assert isinstance(packed.steps(tb), RealSteps) and isinstance(full.steps(tb), AllSteps)
+    metrics = [(packed.step(batch), full.step(batch)) for _ in range(3)]
+    _same_learners(packed, full, *zip(*metrics, strict=True), 1e-4, 1e-5)
 
 
 @pytest.mark.parametrize("recurrent", [True, False])
