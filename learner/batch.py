@@ -397,8 +397,9 @@ def greedy_actions(q: torch.Tensor, avail: torch.Tensor) -> torch.Tensor:
 
 
 class AllSteps:
-    """Every step of a padded batch, as it is laid out: the critic-side view of `RealSteps`
-    for an observation window of any length (its inputs are `obs_history` windows).
+    """Every step of a padded batch, laid out as it is ([E, B, T, ...]): what a central
+    critic computes on when its inputs span several steps (`obs_history` windows longer than
+    one); `RealSteps` is the packed alternative, with the same interface.
 
     `take(v, shift)` is steps shift .. shift+T-1 of a time-indexed v [E, B, T', ...];
     `hist(shift)` the same steps of the observation windows; `put` is the identity, and `mask`

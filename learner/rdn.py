@@ -215,8 +215,8 @@ class RDNLearner(AgentCriticLearner):
             cfg.optimiser,
         )
         self.updates = 0
-        # the critic skips padded steps where it can (`steps`); False computes them too (the
-        # same values up to float rounding: for checks)
+        # the critic skips padded steps where it can (`critic_steps`); False computes them too
+        # (the same values up to float rounding: for checks)
         self.pack_steps = True
 
     def sync_targets(self, episodes: int) -> bool:
@@ -352,7 +352,7 @@ class RDNLearner(AgentCriticLearner):
         every = q_alt.view(e, b, t, n, a).sub_(q_tot.view(e, b, t, 1, 1))  # in place: fresh
         return every.add_(shares.unsqueeze(-1))
 
-    def steps(self, tb: TensorBatch) -> AllSteps | RealSteps:
+    def critic_steps(self, tb: TensorBatch) -> AllSteps | RealSteps:
         """The critic's layout of the batch's steps: the real steps packed together when the
         critic sees one observation per agent (`RealSteps`, the same values without computing
         anything for padding), else every step (`AllSteps`)."""
@@ -363,12 +363,12 @@ class RDNLearner(AgentCriticLearner):
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
         """One RDN update (critic, then agents; `extra` is unused); returns scalar metrics.
 
-        The critic side runs on `self.steps(tb)`'s layout, [E, B', T', ...]: every step, or
-        the real steps packed; the agents' Q-values are taken into it, and the next values
-        put back for the Q(λ) targets, which need the episodes' time order."""
+        The critic side runs on `self.critic_steps(tb)`'s layout, [E, B', T', ...]: every
+        step, or the real steps packed; the agents' Q-values are taken into it, and the next
+        values put back for the Q(λ) targets, which need the episodes' time order."""
         tb = TensorBatch.from_episodes(batch, self.device)
         n, a = self.info.n_agents, self.info.n_actions
-        steps = self.steps(tb)
+        steps = self.critic_steps(tb)
         qs_all = unroll(self.agent, agent_inputs(tb.obs, tb.actions, a))  # [E, B, T+1, N, A]
         qs, actions, avail = steps.take(qs_all), steps.take(tb.actions), steps.take(tb.avail)
         e, b, t = steps.mask.shape
