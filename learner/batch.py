@@ -98,14 +98,19 @@ _L1: dict[int, tuple] = {}  # id(obs) -> (weakref to obs, its version, its row n
 def obs_l1(obs: torch.Tensor) -> torch.Tensor:
     """|obs|_1 of every observation, [E, B, T', N] (the agents' and RDN's critic's inputs both
     skip all-zero observations; computed once per observation tensor while it is unchanged)."""
-    key = id(obs)
-    hit = _L1.get(key)
+    hit = _L1.get(id(obs))
     if hit is not None and hit[0]() is obs and hit[1] == obs._version:
         return hit[2]
     with torch.no_grad():
         norms = obs.abs().sum(-1)  # 10x cheaper than linalg.vector_norm(obs, 1, -1) on CPU
-    _L1[key] = (weakref.ref(obs, lambda _: _L1.pop(key, None)), obs._version, norms)
+    _remember_l1(obs, norms)
     return norms
+
+
+def _remember_l1(obs: torch.Tensor, norms: torch.Tensor) -> None:
+    """Make `obs_l1(obs)` return `norms` while obs is alive and unchanged."""
+    key = id(obs)
+    _L1[key] = (weakref.ref(obs, lambda _: _L1.pop(key, None)), obs._version, norms)
 
 
 def nonzero_obs(
@@ -454,7 +459,9 @@ class RealSteps:
         return (member + (self.index // self.steps) * tp + self.index % self.steps + shift).view(-1)
 
     def hist(self, shift: int = 0) -> torch.Tensor:
-        return obs_history(self.take(self._obs, shift), 1)
+        obs = self.take(self._obs, shift)
+        _remember_l1(obs, self.take(obs_l1(self._obs), shift))  # the agents' inputs had them
+        return obs_history(obs, 1)
 
     def put(self, v: torch.Tensor) -> torch.Tensor:
         """[E, 1, K, ...] -> [E, B, T, ...], zero at the padded steps."""
