@@ -204,9 +204,9 @@ def _first_layer_ratios(
     relevance = out
     for k in range(len(mlp.layers) - 1, 0, -1):
         layer = mlp.layers[k]
-        z = zs[k] if rule != "eps_nobias" else torch.bmm(acts[k - 1], layer.weight)
+        z = zs[k] if rule != "eps_nobias" else layer.matmul(acts[k - 1])
         s = relevance / _stabilise(z, eps)
-        relevance = acts[k - 1] * torch.bmm(s, layer.weight.transpose(1, 2))
+        relevance = acts[k - 1] * layer.matmul_t(s)
     s1 = relevance / _stabilise(z1 if rule != "eps_nobias" else z1 - first.bias, eps)
     return s1, out.squeeze(-1), zs[1]
 
