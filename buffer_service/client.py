@@ -28,7 +28,8 @@ from typing import Any
 
 from buffer_service import codec
 from buffer_service.codec import PROTOCOL_VERSION
-from buffer_service.episode import EPISODE_ARRAYS, Episode, EpisodeBatch, EpisodeSchema
+from buffer_service.episode import Episode, EpisodeBatch, EpisodeSchema
+from buffer_service.packed import PackedEpisode
 
 log = logging.getLogger(__name__)
 
@@ -99,24 +100,28 @@ class BufferClient:
 
     def insert(
         self,
-        episodes: list[Episode],
+        episodes: list[Episode | PackedEpisode],
         tables: list[str] | None = None,
         timeout_s: float | None = None,
+        state: bool = True,
     ) -> dict[str, int]:
         """Store `episodes` (durably, once each) in `tables` (None = every table).
 
         Args:
-            episodes: whole episodes; split into frames under the server's size limit.
+            episodes: whole episodes, sent packed (`buffer_service.packed`); split into
+                frames under the server's size limit. One that cannot be packed (not
+                whole) raises EpisodeError before anything is sent.
             tables: table names, or None for all.
             timeout_s: longest wait for the rate limiter per frame (None: the server's
                 insert_timeout_s, which also caps it), then RateLimitedError.
+            state: send the episodes' state (False: for learners that never read it).
 
         Returns:
             ``{"inserted": n, "duplicates": d}`` summed over frames; a retried frame's
             episodes that the lost attempt had stored count as duplicates.
         """
         total = {"inserted": 0, "duplicates": 0}
-        for chunk in self._chunks(episodes):
+        for chunk in self._chunks([PackedEpisode.pack(ep, state) for ep in episodes]):
             msg: dict[str, Any] = {"op": "insert", "episodes": chunk}
             if tables is not None:
                 msg["tables"] = list(tables)
@@ -129,8 +134,9 @@ class BufferClient:
 
     def sample_episodes(
         self, table: str, batch_size: int, timeout_s: float | None = None
-    ) -> list[Episode]:
-        """Sample `batch_size` whole episodes from `table` (waits for the rate limiter)."""
+    ) -> list[PackedEpisode]:
+        """Sample `batch_size` whole episodes from `table` (waits for the rate limiter), as
+        stored (packed; `EpisodeBatch.from_episodes` decodes them, `unpack` one)."""
         msg: dict[str, Any] = {"op": "sample", "table": table, "batch_size": int(batch_size)}
         if timeout_s is not None:
             msg["timeout_s"] = float(timeout_s)
@@ -176,12 +182,12 @@ class BufferClient:
 
     # ---------------------------------------------------------------- internals
 
-    def _chunks(self, episodes: list[Episode]):
+    def _chunks(self, episodes: list[PackedEpisode]):
         limit = int(self.server_max_frame * 0.9)
         chunk: list[dict[str, Any]] = []
         size = 0
         for ep in episodes:
-            n = PER_EPISODE_OVERHEAD + sum(getattr(ep, f).nbytes for f in EPISODE_ARRAYS)
+            n = PER_EPISODE_OVERHEAD + ep.data.nbytes
             if n > limit:
                 raise ValueError(f"episode {ep.key} needs {n} bytes, server frames hold {limit}")
             if chunk and size + n > limit:

@@ -10,6 +10,13 @@ every reply carries ``ok`` (bool) and, when ``ok`` is false, ``error`` (a short 
 "data": <msgpack bin>}``: the dtype string must be in `ALLOWED_DTYPES` and
 ``prod(shape) * itemsize == len(data)``, otherwise decoding raises `CodecError`.
 
+Episodes travel packed (`buffer_service.packed.PackedEpisode`, protocol 2): ``{"packing":
+PACKING, "length", "dims", "obs_counts", "state_counts", "terminated", "data": <uint8
+array>, actor_id, episode_seq, policy_version}``, the form the buffer stores, logs and
+snapshots. Protocol 1's dense episode map (seven arrays, as `Episode` holds them), which logs
+and snapshots written before packing hold, is still read, and packed on reading; a packing
+this build does not know is refused with `PackingError`.
+
 Zero-copy: `buffer_service.wire` encodes array data as references (the socket or one join
 copies them once) and decodes bins as memoryview slices of the received frame, which
 ``np.frombuffer`` wraps without copying; decoded arrays therefore alias the frame buffer
@@ -26,9 +33,16 @@ import msgpack
 import numpy as np
 
 from buffer_service import wire
-from buffer_service.episode import EPISODE_ARRAYS, EPISODE_DTYPES, EPISODE_SCALARS, Episode
+from buffer_service.episode import (
+    EPISODE_ARRAYS,
+    EPISODE_DTYPES,
+    EPISODE_SCALARS,
+    Episode,
+    EpisodeError,
+)
+from buffer_service.packed import PACKING, FloatCounts, PackedEpisode
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: episodes packed (1: dense arrays, still read from old logs)
 FRAME_HEADER = struct.Struct(">I")
 MAX_NDIM = 8
 ZERO_COPY_MIN = 4 * 2**20  # frames this large are decoded without copying array data
@@ -57,6 +71,17 @@ ERROR_CODES: frozenset[str] = frozenset(
 
 class CodecError(ValueError):
     """A frame or array that does not follow the wire format."""
+
+
+class PackingError(CodecError):
+    """A packed episode in a layout (`packing`) that this build cannot read: written by a
+    newer version of the buffer service."""
+
+
+PACKED_KEYS = frozenset(
+    {"packing", "length", "dims", "obs_counts", "state_counts", "terminated", "data"}
+    | set(EPISODE_SCALARS)
+)
 
 
 def encode_array(arr: np.ndarray) -> dict[str, Any]:
@@ -110,19 +135,103 @@ def decode_array(obj: Any, name: str = "array") -> np.ndarray:
     return arr
 
 
-def episode_to_wire(ep: Episode) -> dict[str, Any]:
-    """Wire map of one episode: its seven arrays plus the three integer tags."""
+def episode_to_wire(ep: Episode | PackedEpisode) -> dict[str, Any]:
+    """Wire map of one episode, packed (a dense `Episode` is packed here, state kept)."""
+    p = PackedEpisode.pack(ep)
+    out: dict[str, Any] = {
+        "packing": PACKING,
+        "length": p.length,
+        "dims": list(p.dims),
+        "obs_counts": _counts_list(p.obs_counts),
+        "state_counts": _counts_list(p.state_counts),
+        "terminated": p.terminated_last,
+        "data": encode_array(p.data),
+    }
+    for name in EPISODE_SCALARS:
+        out[name] = int(getattr(p, name))
+    return out
+
+
+def dense_to_wire(ep: Episode) -> dict[str, Any]:
+    """Protocol 1's wire map of one episode (its seven arrays and three integer tags): what
+    logs and snapshots written before packing hold; kept to test that they are still read."""
     out: dict[str, Any] = {name: encode_array(getattr(ep, name)) for name in EPISODE_ARRAYS}
     for name in EPISODE_SCALARS:
         out[name] = int(getattr(ep, name))
     return out
 
 
-def episode_from_wire(obj: Any) -> Episode:
-    """Episode from its wire map; checks keys, dtypes and tag ranges (not the schema).
+def _counts_list(c: FloatCounts) -> list[int]:
+    return [c.rows, c.features, c.live, c.nonzero, c.values]
 
-    Shapes and value checks against an EpisodeSchema are `Episode.validate`'s job.
+
+def episode_from_wire(obj: Any) -> PackedEpisode:
+    """The stored form of an episode from its wire map, packed or (protocol 1) dense; checks
+    keys, dtypes, tag ranges and the packed layout (not the schema: `validate`'s job).
+
+    Raises:
+        PackingError: a packing this build does not know.
+        CodecError: anything else that is not an episode's wire map.
     """
+    if isinstance(obj, dict) and "packing" in obj:
+        return _packed_from_wire(obj)
+    dense = dense_from_wire(obj)
+    try:
+        return PackedEpisode.pack(dense)
+    except EpisodeError as e:
+        raise CodecError(str(e)) from None
+
+
+def _ints(obj: Any, n: int, name: str, low: int = 0) -> list[int]:
+    if not (isinstance(obj, list) and len(obj) == n):
+        raise CodecError(f"{name}: must be a list of {n} ints, got {obj!r}")
+    if not all(type(v) is int and low <= v < 2**40 for v in obj):
+        raise CodecError(f"{name}: must hold ints in {low}..2**40, got {obj!r}")
+    return obj
+
+
+def _packed_from_wire(obj: dict[str, Any]) -> PackedEpisode:
+    if obj["packing"] != PACKING:
+        raise PackingError(
+            f"episode packing {obj['packing']!r} is not one this build reads ({PACKING}): it "
+            "was written by a newer buffer service; read it with that version"
+        )
+    if set(obj) != PACKED_KEYS:
+        raise CodecError(f"packed episode must be a map with exactly {sorted(PACKED_KEYS)}")
+    if type(obj["terminated"]) is not bool or type(obj["length"]) is not int:
+        raise CodecError("packed episode: terminated must be a bool and length an int")
+    data = decode_array(obj["data"], "data")
+    if data.dtype != np.uint8 or data.ndim != 1:
+        raise CodecError("packed episode: data must be a flat |u1 array")
+    try:
+        ep = PackedEpisode(
+            length=obj["length"],
+            dims=tuple(_ints(obj["dims"], 4, "dims")),
+            obs_counts=FloatCounts(*_ints(obj["obs_counts"], 5, "obs_counts")),
+            state_counts=FloatCounts(*_ints(obj["state_counts"], 5, "state_counts")),
+            terminated_last=obj["terminated"],
+            data=data,
+            **_scalars(obj),
+        )
+        ep.check_layout()
+    except EpisodeError as e:
+        raise CodecError(str(e)) from None
+    return ep
+
+
+def _scalars(obj: dict[str, Any]) -> dict[str, int]:
+    out = {}
+    for name in EPISODE_SCALARS:
+        val = obj[name]
+        if type(val) is not int or not INT64_MIN <= val <= INT64_MAX:
+            raise CodecError(f"{name}: must be an int64, got {val!r}")
+        out[name] = val
+    return out
+
+
+def dense_from_wire(obj: Any) -> Episode:
+    """Episode from its protocol-1 (dense) wire map; checks keys, dtypes, dimensions and tag
+    ranges (not the schema)."""
     expected = set(EPISODE_ARRAYS) | set(EPISODE_SCALARS)
     if not isinstance(obj, dict) or set(obj) != expected:
         got = sorted(obj) if isinstance(obj, dict) else type(obj).__name__
@@ -133,12 +242,14 @@ def episode_from_wire(obj: Any) -> Episode:
         if arr.dtype != EPISODE_DTYPES[name]:
             raise CodecError(f"{name}: dtype {arr.dtype} but episodes need {EPISODE_DTYPES[name]}")
         fields_[name] = arr
-    for name in EPISODE_SCALARS:
-        val = obj[name]
-        if type(val) is not int or not INT64_MIN <= val <= INT64_MAX:
-            raise CodecError(f"{name}: must be an int64, got {val!r}")
-        fields_[name] = val
-    return Episode(**fields_)
+    ep = Episode(**fields_, **_scalars(obj))
+    t = ep.actions.shape[0] if ep.actions.ndim else 0
+    ndims = {"obs": 3, "state": 2, "avail_actions": 3, "actions": 2}
+    for name in EPISODE_ARRAYS:
+        arr, steps = fields_[name], t + 1 if name in ("obs", "state", "avail_actions") else t
+        if arr.ndim != ndims.get(name, 1) or arr.shape[0] != steps or t < 1:
+            raise CodecError(f"{name}: shape {arr.shape} is not that of an episode of {t} steps")
+    return ep
 
 
 def pack(msg: dict[str, Any]) -> bytes:
@@ -191,8 +302,10 @@ def decodes_as_views(nbytes: int) -> bool:
     return nbytes >= ZERO_COPY_MIN
 
 
-def own(ep: Episode) -> Episode:
+def own(ep: Episode | PackedEpisode) -> Episode | PackedEpisode:
     """A copy of `ep` whose arrays own their memory (not views of a received frame)."""
+    if isinstance(ep, PackedEpisode):
+        return ep.owned()
     arrays = {name: np.array(getattr(ep, name)) for name in EPISODE_ARRAYS}
     return Episode(**arrays, **{name: getattr(ep, name) for name in EPISODE_SCALARS})
 

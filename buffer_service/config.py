@@ -10,6 +10,9 @@ from typing import Any
 from buffer_service.episode import EpisodeSchema
 
 TABLE_KINDS = ("cycling", "replay")
+# A replay's default byte budget: 5,000 bane_vs_bane episodes (3.2 KB per stored env step,
+# `credit bench memory`) of up to 130 steps on average, per seed.
+DEFAULT_REPLAY_MAX_BYTES = 2 * 2**30
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,9 @@ class TableConfig:
         kind: ``cycling`` (FIFO; each episode sampled at most ``max_times_sampled`` times,
             then removed; a batch never repeats an episode) or ``replay`` (uniform).
         capacity: episodes held; the oldest is dropped on overflow (both kinds).
+        max_bytes: byte budget of the episodes held (their stored, packed size,
+            `buffer_service.packed.PackedEpisode.nbytes`); the oldest are dropped beyond it
+            (both kinds; 0 = no budget, the count alone bounds the table).
         max_times_sampled: K for ``cycling`` (0 = unlimited); ignored for ``replay``.
         replacement: ``replay`` only: a batch may repeat an episode (True) or never does
             (False; a batch then needs at least as many episodes held as it asks for).
@@ -62,6 +68,7 @@ class TableConfig:
     name: str = "cycling"
     kind: str = "cycling"
     capacity: int = 32
+    max_bytes: int = 0
     max_times_sampled: int = 8
     replacement: bool = True
     rate_limiter: RateLimiterConfig = field(default_factory=RateLimiterConfig)
@@ -73,6 +80,8 @@ class TableConfig:
             raise ValueError(f"table.kind {self.kind!r} must be one of {TABLE_KINDS}")
         if self.capacity < 1:
             raise ValueError(f"table.capacity must be >= 1 (table {self.name})")
+        if self.max_bytes < 0:
+            raise ValueError(f"table.max_bytes must be >= 0 (table {self.name})")
         if self.max_times_sampled < 0:
             raise ValueError(f"table.max_times_sampled must be >= 0 (table {self.name})")
         self.rate_limiter.validate()
@@ -90,10 +99,13 @@ class TableConfig:
 
 
 def default_tables() -> tuple[TableConfig, ...]:
-    """EM-CAC's pair: a 32-episode cycling buffer (K = 8) and a 5000-episode replay."""
+    """EM-CAC's pair: a 32-episode cycling buffer (K = 8) and a 5000-episode replay within
+    DEFAULT_REPLAY_MAX_BYTES."""
     return (
         TableConfig(name="cycling", kind="cycling", capacity=32, max_times_sampled=8),
-        TableConfig(name="replay", kind="replay", capacity=5000),
+        TableConfig(
+            name="replay", kind="replay", capacity=5000, max_bytes=DEFAULT_REPLAY_MAX_BYTES
+        ),
     )
 
 
@@ -137,6 +149,8 @@ class BufferConfig:
         metrics_port: Prometheus HTTP port on 127.0.0.1 (None = no exporter, 0 = any).
         seed: seed of the sampling RNG (None = from os.urandom); a launcher that wants a
             repeatable run sets it.
+        store_state: keep each episode's global state (False: dropped on insert, for
+            learners that never read it, `learner.registry.AlgoSpec.reads_state`).
     """
 
     host: str = "127.0.0.1"
@@ -161,6 +175,7 @@ class BufferConfig:
     dedup_window: int = 1 << 16
     metrics_port: int | None = None
     seed: int | None = None
+    store_state: bool = True
 
     def validate(self) -> None:
         if not is_loopback(self.host) and not self.token:

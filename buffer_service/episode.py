@@ -113,12 +113,16 @@ class Episode:
     def key(self) -> tuple[int, int]:
         return (int(self.actor_id), int(self.episode_seq))
 
-    def validate(self, schema: EpisodeSchema) -> None:
-        """Raise EpisodeError naming the first field that breaks `schema`."""
+    def validate(self, schema: EpisodeSchema, state: bool = True) -> None:
+        """Raise EpisodeError naming the first field that breaks `schema` (`state` False:
+        the state must be empty, [T+1, 0], as in an episode stored without it)."""
         t = self.length
         if not 1 <= t <= schema.max_t:
             raise EpisodeError(f"episode length {t} outside 1..{schema.max_t}")
-        for name, shape in schema.shapes(t).items():
+        shapes = schema.shapes(t)
+        if not state:
+            shapes["state"] = (t + 1, 0)
+        for name, shape in shapes.items():
             arr = getattr(self, name)
             if not isinstance(arr, np.ndarray):
                 raise EpisodeError(f"field {name!r} is {type(arr).__name__}, not a numpy array")
@@ -133,6 +137,8 @@ class Episode:
                 raise EpisodeError(f"field {name!r} holds NaN or inf")
         if np.any(self.actions < 0) or np.any(self.actions >= schema.n_actions):
             raise EpisodeError(f"field 'actions' has values outside 0..{schema.n_actions - 1}")
+        if np.any(self.avail_actions > 1):
+            raise EpisodeError("field 'avail_actions' holds values other than 0 and 1")
         if np.any(self.terminated[:-1]):
             raise EpisodeError("field 'terminated' is set before the last transition")
         if not np.all(self.filled):
@@ -146,6 +152,15 @@ class Episode:
             raise EpisodeError(
                 f"field 'avail_actions': agent {agent} has no available action at step {t_}"
             )
+
+
+def _tails(ep) -> dict[str, tuple[int, ...]]:
+    """Each array field's shape after its time axis, for an Episode or a PackedEpisode."""
+    if isinstance(ep, Episode):
+        return {name: getattr(ep, name).shape[1:] for name in EPISODE_ARRAYS}
+    n, o, s, a = ep.dims
+    one = {"obs": (n, o), "state": (s,), "avail_actions": (n, a), "actions": (n,)}
+    return {name: one.get(name, ()) for name in EPISODE_ARRAYS}
 
 
 @dataclass(frozen=True)
@@ -177,8 +192,11 @@ class EpisodeBatch:
         return int(self.reward.shape[-1])
 
     @classmethod
-    def from_episodes(cls, episodes: list[Episode], pad_to: int | None = None) -> EpisodeBatch:
-        """Pad and stack `episodes` (padding: zeros, avail_actions of padding = no-op only)."""
+    def from_episodes(cls, episodes: list, pad_to: int | None = None) -> EpisodeBatch:
+        """Pad and stack `episodes` (padding: zeros, avail_actions of padding = no-op only).
+
+        `episodes` are `Episode`s or stored `buffer_service.packed.PackedEpisode`s, which are
+        decoded straight into the batch's arrays (bit for bit what their `Episode` held)."""
         if not episodes:
             raise EpisodeError("cannot batch zero episodes")
         t = max(ep.length for ep in episodes) if pad_to is None else pad_to
@@ -187,21 +205,30 @@ class EpisodeBatch:
             k: np.array([getattr(ep, k) for ep in episodes], dtype=np.int64)
             for k in EPISODE_SCALARS
         }
-        if all(ep.length == t for ep in episodes):  # nothing to pad: one stack per field
+        dense = all(isinstance(ep, Episode) for ep in episodes)
+        if dense and all(ep.length == t for ep in episodes):  # nothing to pad: one stack each
             arrays = {
                 name: np.stack([getattr(ep, name) for ep in episodes]) for name in EPISODE_ARRAYS
             }
             return cls(**arrays, **scal)
+        tails = _tails(episodes[0])
         out: dict[str, np.ndarray] = {}
         for name in EPISODE_ARRAYS:
-            first = getattr(episodes[0], name)
             steps = t + 1 if name in ("obs", "state", "avail_actions") else t
-            out[name] = np.zeros((b, steps, *first.shape[1:]), dtype=EPISODE_DTYPES[name])
+            out[name] = np.zeros((b, steps, *tails[name]), dtype=EPISODE_DTYPES[name])
         out["avail_actions"][..., 0] = 1
         for i, ep in enumerate(episodes):
             n = ep.length
             if n > t:
                 raise EpisodeError(f"episode of length {n} does not fit pad_to={t}")
+            if _tails(ep) != tails:
+                raise EpisodeError(
+                    f"episode {ep.key} has field shapes {_tails(ep)}, the batch's first "
+                    f"{tails} (episodes stored with and without the state cannot share a batch)"
+                )
+            if not isinstance(ep, Episode):
+                ep.write_into(out, i)
+                continue
             for name in EPISODE_ARRAYS:
                 arr = getattr(ep, name)
                 out[name][i, : arr.shape[0]] = arr

@@ -14,6 +14,7 @@ from typing import Any
 
 from buffer_service.config import BufferConfig, TableConfig
 from buffer_service.episode import Episode, EpisodeBatch, EpisodeSchema
+from buffer_service.packed import PackedEpisode
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage
 
@@ -35,13 +36,22 @@ class LocalBuffer:
         seed: seed of the sampling RNG.
         schema: when given, every inserted episode is validated against it (EpisodeError),
             as the buffer service does.
+        store_state: keep the episodes' state (False for learners that never read it).
+
+    Episodes are stored packed (`buffer_service.packed`); `sample` decodes them into the
+    batch's arrays.
     """
 
     def __init__(
-        self, tables: tuple[TableConfig, ...], seed: int = 0, schema: EpisodeSchema | None = None
+        self,
+        tables: tuple[TableConfig, ...],
+        seed: int = 0,
+        schema: EpisodeSchema | None = None,
+        store_state: bool = True,
     ):
         self.tables = tables
-        self.state = BufferState(BufferConfig(tables=tables, schema=schema))
+        cfg = BufferConfig(tables=tables, schema=schema, store_state=store_state)
+        self.state = BufferState(cfg)
         self.rng = random.Random(seed)
 
     def can_insert(self) -> bool:
@@ -60,7 +70,7 @@ class LocalBuffer:
     def ready(self, table: str, batch_size: int) -> bool:
         return self.state.tables[table].ready(batch_size)
 
-    def sample_episodes(self, table: str, batch_size: int) -> list[Episode]:
+    def sample_episodes(self, table: str, batch_size: int) -> list[PackedEpisode]:
         """`batch_size` episodes of `table` (the caller checked `ready`)."""
         keys = self.state.choose(table, batch_size, self.rng)
         return self.state.apply_sample(table, keys)

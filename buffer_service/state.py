@@ -13,6 +13,7 @@ from typing import Any
 
 from buffer_service.config import BufferConfig
 from buffer_service.episode import Episode, EpisodeSchema
+from buffer_service.packed import PackedEpisode
 from buffer_service.tables import Key, Table, TableCopy
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ class StateCopy:
     tables: dict[str, TableCopy]
     dedup: list[tuple[int, int, set[int]]]
     duplicates: int
-    episodes: list[Episode]
+    episodes: list[PackedEpisode]
 
     def header(self) -> dict[str, Any]:
         """The snapshot header: everything but the episodes (built off the event loop)."""
@@ -63,7 +64,8 @@ class StateCopy:
 
 
 class BufferState:
-    """Episodes shared by the tables that hold them (stored once, freed when unreferenced).
+    """Episodes shared by the tables that hold them (stored once, packed, freed when
+    unreferenced; without their state unless cfg.store_state).
 
     Args:
         cfg: server config (tables, dedup window, initial schema).
@@ -73,7 +75,7 @@ class BufferState:
         self.cfg = cfg
         self.schema: EpisodeSchema | None = cfg.schema
         self.tables: dict[str, Table] = {t.name: Table(t) for t in cfg.tables}
-        self.episodes: dict[Key, Episode] = {}
+        self.episodes: dict[Key, PackedEpisode] = {}
         self.refs: dict[Key, int] = {}
         self.dedup: dict[int, SeqWindow] = {}
         self.duplicates = 0
@@ -82,8 +84,9 @@ class BufferState:
         w = self.dedup.get(key[0])
         return w is not None and key[1] in w
 
-    def insert(self, ep: Episode, table_names: list[str]) -> bool:
-        """Store `ep` in `table_names` unless its key was seen; return True if stored."""
+    def insert(self, ep: Episode | PackedEpisode, table_names: list[str]) -> bool:
+        """Store `ep` (packed) in `table_names` unless its key was seen; return True if
+        stored."""
         key = ep.key
         if self.is_duplicate(key):
             self.duplicates += 1
@@ -94,10 +97,11 @@ class BufferState:
         names = [n for n in dict.fromkeys(table_names) if n in self.tables]
         if not names:
             return True
+        ep = PackedEpisode.pack(ep, state=self.cfg.store_state)
         self.episodes[key] = ep
         self.refs[key] = len(names)
         for n in names:
-            for old in self.tables[n].insert(key):
+            for old in self.tables[n].insert(key, ep.nbytes):
                 self._unref(old)
         return True
 
@@ -110,7 +114,7 @@ class BufferState:
     def choose(self, table: str, n: int, rng: random.Random) -> list[Key]:
         return self.tables[table].choose(n, rng)
 
-    def apply_sample(self, table: str, keys: list[Key]) -> list[Episode]:
+    def apply_sample(self, table: str, keys: list[Key]) -> list[PackedEpisode]:
         """Count a sample of `keys` from `table`; return their episodes (before retiring)."""
         eps = [self.episodes[k] for k in keys if k in self.episodes]
         for old in self.tables[table].mark_sampled(keys):
@@ -121,6 +125,7 @@ class BufferState:
         return {
             "schema": self.schema.to_dict() if self.schema else None,
             "episodes_stored": len(self.episodes),
+            "episode_bytes": sum(ep.nbytes for ep in self.episodes.values()),
             "duplicates": self.duplicates,
             "actors": len(self.dedup),
             "tables": {name: t.stats() for name, t in self.tables.items()},
@@ -154,17 +159,21 @@ class BufferState:
         self.duplicates = st["duplicates"]
 
     def rebuild_refs(self) -> None:
-        """After loading a snapshot: count references and drop unreferenced episodes."""
-        self.refs = {}
-        for t in self.tables.values():
-            for k in t.order:
-                self.refs[k] = self.refs.get(k, 0) + 1
+        """After loading a snapshot: drop the state if it is not stored, apply the tables'
+        byte budgets, count references and drop unreferenced episodes."""
         for t in self.tables.values():  # a table may reference an episode the file lacks
             missing = [k for k in t.order if k not in self.episodes]
             for k in missing:
                 log.error("snapshot lacks episode %s of table %s; dropped", k, t.name)
                 t.order.remove(k)
                 del t.times_sampled[k]
-                self.refs.pop(k, None)
+        if not self.cfg.store_state:
+            self.episodes = {k: PackedEpisode.pack(ep, False) for k, ep in self.episodes.items()}
+        sizes = {k: ep.nbytes for k, ep in self.episodes.items()}
+        self.refs = {}
+        for t in self.tables.values():
+            t.set_sizes(sizes)
+            for k in t.order:
+                self.refs[k] = self.refs.get(k, 0) + 1
         for k in [k for k in self.episodes if k not in self.refs]:
             del self.episodes[k]

@@ -70,10 +70,14 @@ class TableCopy:
 
 
 class Table:
-    """FIFO-ordered episode keys with per-key sample counts.
+    """FIFO-ordered episode keys with per-key sample counts and stored sizes.
+
+    Two bounds hold after every insert, both by dropping the oldest keys (FIFO, for both
+    kinds): at most ``capacity`` episodes, and at most ``max_bytes`` bytes of them (when
+    set; the newest episode is kept even if it alone is larger).
 
     Args:
-        cfg: the table's config (kind, capacity, K, rate limiter).
+        cfg: the table's config (kind, capacity, max_bytes, K, rate limiter).
     """
 
     def __init__(self, cfg: TableConfig) -> None:
@@ -81,6 +85,8 @@ class Table:
         self.name = cfg.name
         self.order: deque[Key] = deque()
         self.times_sampled: dict[Key, int] = {}
+        self.sizes: dict[Key, int] = {}  # stored bytes of each key's episode
+        self.bytes = 0  # their sum
         self.limiter = RateLimiter(cfg.rate_limiter)
         self.evicted = 0  # dropped on overflow
         self.retired = 0  # removed after K samples
@@ -91,16 +97,40 @@ class Table:
     def __contains__(self, key: Key) -> bool:
         return key in self.times_sampled
 
-    def insert(self, key: Key) -> list[Key]:
-        """Append `key`; return the keys dropped from the front to respect capacity."""
+    def insert(self, key: Key, nbytes: int = 0) -> list[Key]:
+        """Append `key` (its episode stored in `nbytes`); return the keys dropped from the
+        front to respect capacity and max_bytes."""
         self.order.append(key)
         self.times_sampled[key] = 0
+        self.sizes[key] = nbytes
+        self.bytes += nbytes
         self.limiter.inserts += 1
+        dropped = self._fit()
+        self.evicted += len(dropped)
+        return dropped
+
+    def _over(self) -> bool:
+        budget = self.cfg.max_bytes
+        return len(self.order) > self.cfg.capacity or (
+            budget > 0 and self.bytes > budget and len(self.order) > 1
+        )
+
+    def _fit(self) -> list[Key]:
+        """Drop the oldest keys until both bounds hold; return them."""
         dropped = []
-        while len(self.order) > self.cfg.capacity:
+        while self._over():
             old = self.order.popleft()
             del self.times_sampled[old]
+            self.bytes -= self.sizes.pop(old)
             dropped.append(old)
+        return dropped
+
+    def set_sizes(self, sizes: dict[Key, int]) -> list[Key]:
+        """After loading a snapshot: every key's stored bytes; drops (and returns) the oldest
+        keys beyond max_bytes (the budget may have shrunk between runs)."""
+        self.sizes = {k: sizes[k] for k in self.order}
+        self.bytes = sum(self.sizes.values())
+        dropped = self._fit()
         self.evicted += len(dropped)
         return dropped
 
@@ -139,6 +169,7 @@ class Table:
                 retired.append(key)
         for key in retired:
             del self.times_sampled[key]
+            self.bytes -= self.sizes.pop(key, 0)
             self.order.remove(key)
         self.retired += len(retired)
         return retired
@@ -148,6 +179,8 @@ class Table:
             "kind": self.cfg.kind,
             "size": len(self.order),
             "capacity": self.cfg.capacity,
+            "bytes": self.bytes,
+            "max_bytes": self.cfg.max_bytes,
             "inserts": self.limiter.inserts,
             "samples": self.limiter.samples,
             "evicted": self.evicted,
@@ -166,6 +199,7 @@ class Table:
     def load_state(self, st: dict[str, Any]) -> None:
         self.order.clear()
         self.times_sampled.clear()
+        self.sizes, self.bytes = {}, 0  # known once the episodes are (`set_sizes`)
         for actor, seq, count in st["items"]:
             if (actor, seq) in self.times_sampled:  # listed twice by an older version
                 continue
@@ -173,6 +207,7 @@ class Table:
             self.times_sampled[(actor, seq)] = count
         while len(self.order) > self.cfg.capacity:  # capacity shrank between runs
             del self.times_sampled[self.order.popleft()]
+        self.sizes = dict.fromkeys(self.order, 0)
         self.limiter.inserts = st["inserts"]
         self.limiter.samples = st["samples"]
         self.evicted = st["evicted"]

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from buffer_service import codec
-from buffer_service.codec import CodecError
+from buffer_service.codec import CodecError, PackingError
+from buffer_service.packed import PackedEpisode
 from tests.buffer_service.conftest import SCHEMA, make_episode
 
 
@@ -70,8 +71,37 @@ def test_array_rejections(obj, why):
         codec.decode_array(obj)
 
 
+def test_dense_episodes_of_protocol_1_are_read_and_packed():
+    """Logs and snapshots written before packing hold dense episodes: still read, packed."""
+    ep = make_episode(actor=2, seq=5, t=4)
+    back = codec.episode_from_wire(codec.unpack(codec.pack(codec.dense_to_wire(ep))))
+    assert isinstance(back, PackedEpisode)
+    back.validate(SCHEMA)
+    for name in codec.EPISODE_ARRAYS:
+        assert getattr(back, name).tobytes() == getattr(ep, name).tobytes(), name
+
+
+def test_packed_episode_rejections():
+    wire = codec.unpack(codec.pack(codec.episode_to_wire(make_episode(t=4))))
+    with pytest.raises(PackingError, match="packing 9 is not one this build reads"):
+        codec.episode_from_wire(dict(wire, packing=9))
+    with pytest.raises(CodecError, match="exactly"):
+        codec.episode_from_wire({k: v for k, v in wire.items() if k != "dims"})
+    with pytest.raises(CodecError, match="data holds"):  # one byte short
+        data = codec.decode_array(wire["data"])[:-1].copy()
+        codec.episode_from_wire(dict(wire, data=codec.encode_array(data)))
+    counts = list(wire["obs_counts"])
+    counts[4] -= 1  # one stored value fewer than the ones bits leave
+    with pytest.raises(CodecError):
+        codec.episode_from_wire(dict(wire, obs_counts=counts))
+    with pytest.raises(CodecError, match="ints"):
+        codec.episode_from_wire(dict(wire, dims=[3, -1, 6, 5]))
+    with pytest.raises(CodecError, match="int64"):
+        codec.episode_from_wire(dict(wire, actor_id="x"))
+
+
 def test_episode_rejections():
-    wire = codec.episode_to_wire(make_episode())
+    wire = codec.dense_to_wire(make_episode())
     wire = codec.unpack(codec.pack(wire))
     bad_dtype = dict(wire, actions=codec.encode_array(np.zeros((5, 3), np.int32)))
     with pytest.raises(CodecError, match="actions"):

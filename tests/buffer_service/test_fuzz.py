@@ -76,7 +76,30 @@ def insert_msg(wire: dict | list, **kw) -> dict:
 
 
 def good_wire(seq: int = 0) -> dict:
+    """A protocol-1 (dense) episode map, which the service still reads (old logs hold it)."""
+    return codec.unpack(codec.pack(codec.dense_to_wire(make_episode(99, seq))))
+
+
+def packed_wire(seq: int = 0) -> dict:
     return codec.unpack(codec.pack(codec.episode_to_wire(make_episode(99, seq))))
+
+
+def packed_cases() -> dict[str, dict]:
+    """Malformed packed episodes (protocol 2's form)."""
+    p = packed_wire()
+    data = codec.decode_array(p["data"]).copy()
+    nan = data.copy()
+    nan[:4] = np.frombuffer(np.float32(np.nan).tobytes(), np.uint8)  # the first obs value
+    counts = list(p["obs_counts"])
+    counts[3] += 1
+    return {
+        "packed_nan": dict(p, data=arr(nan)),
+        "packed_short": dict(p, data=arr(data[:-3])),
+        "packed_counts": dict(p, obs_counts=counts),
+        "packed_unknown": dict(p, packing=99),
+        "packed_dims_str": dict(p, dims="3,5,7,4"),
+        "packed_wrong_agents": dict(p, dims=[4, *p["dims"][1:]]),
+    }
 
 
 def arr(a: np.ndarray) -> dict:
@@ -103,6 +126,7 @@ def structured_cases() -> list[tuple[str, bytes, dict | None]]:
         "missing_field": {k: v for k, v in w.items() if k != "filled"},
         "seq_not_int": dict(w, episode_seq=1.5),
         "bool_bytes": dict(w, terminated={"dtype": "|b1", "shape": [t], "data": b"\x05" * t}),
+        **packed_cases(),
     }
     v = codec.PROTOCOL_VERSION
     cases = [(f"episode:{k}", _frame(insert_msg(e)), hello()) for k, e in bad_eps.items()]
@@ -153,9 +177,9 @@ def _raw(body: bytes) -> bytes:
 
 def random_cases(rng: random.Random, count: int) -> list[tuple[str, bytes, dict | None]]:
     cases = []
-    valid = _frame(insert_msg(good_wire(1)))
+    valids = [_frame(insert_msg(good_wire(1))), _frame(insert_msg(packed_wire(1)))]
     for i in range(count):
-        kind = i % 4
+        kind, valid = i % 4, valids[(i // 4) % 2]
         if kind == 0:  # pure random bytes (random length prefix)
             payload = rng.randbytes(rng.randrange(0, 2000))
         elif kind == 1:  # sane prefix, random body
