@@ -58,11 +58,18 @@ class LocalBuffer:
         """Would the buffer service accept an insert now (every table's limiter)?"""
         return all(t.limiter.can_insert(1) for t in self.state.tables.values())
 
-    def insert(self, episodes: list[Episode], tables: list[str] | None = None) -> dict[str, int]:
-        """Store `episodes` (validated first, all or nothing) in `tables` (default: all)."""
+    def insert(
+        self, episodes: list[Episode | PackedEpisode], tables: list[str] | None = None
+    ) -> dict[str, int]:
+        """Store `episodes` (validated first, all or nothing) in `tables` (default: all).
+        Without store_state an episode may come without its state ([T+1, 0])."""
         if self.state.schema is not None:
             for ep in episodes:
-                ep.validate(self.state.schema)
+                if isinstance(ep, PackedEpisode):
+                    ep.validate(self.state.schema)
+                else:
+                    empty = not self.state.cfg.store_state and ep.state.shape[-1:] == (0,)
+                    ep.validate(self.state.schema, state=not empty)
         names = list(self.state.tables) if tables is None else tables
         stored = sum(self.state.insert(ep, names) for ep in episodes)
         return {"inserted": stored, "duplicates": len(episodes) - stored}

@@ -57,6 +57,8 @@ class ActorConfig:
         acting: the acting network, as the learner describes it (`Learner.acting`).
         metrics: serve a Prometheus exporter.
         bind_host: cluster.bind_host (the exporter binds loopback unless this is not).
+        send_state: send the episodes' global state (False when the learner never reads it:
+            `cluster.config.plan.DataPlan.store_state`).
     """
 
     actor_id: int
@@ -68,6 +70,7 @@ class ActorConfig:
     acting: ActingSpec
     metrics: bool = False
     bind_host: str = "127.0.0.1"
+    send_state: bool = True
 
 
 @dataclass(frozen=True)

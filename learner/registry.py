@@ -55,6 +55,8 @@ class AlgoSpec:
         description: one line for help texts.
         family: "value" or "pg"; decides the buffer tables (cluster.config.train.data_plan).
         extended: for "pg", whether the learner also takes an off-policy replay batch.
+        reads_state: `(config) -> bool`, whether the learner reads the episodes' global
+            state; when it does not, the buffer does not store it (`DataPlan.store_state`).
     """
 
     name: str
@@ -63,6 +65,7 @@ class AlgoSpec:
     description: str
     family: str = "value"  # "value" (replay, ε-greedy) or "pg" (cycling buffer, sampling)
     extended: bool = False  # pg only: semi-online cycling buffer + off-policy critic pass
+    reads_state: Callable[[Any], bool] = lambda cfg: True
 
 
 def _cac(extended: bool, masked: bool) -> Callable[[Any, EpisodeSchema, int, str], Learner]:
@@ -73,21 +76,30 @@ def _value(mixing: str) -> Callable[[Any, EpisodeSchema, int, str], Learner]:
     return lambda cfg, schema, e, device: ValueLearner(cfg, schema, mixing, e, device)
 
 
+def _pg_reads_state(cfg: CACConfig) -> bool:
+    return cfg.critic_input != "obs"  # learner.pg.critic_features
+
+
+NO_STATE: dict[str, Any] = {"reads_state": lambda cfg: False}  # the networks see observations
+PG_STATE: dict[str, Any] = {"reads_state": _pg_reads_state}
+
 ALGOS: dict[str, AlgoSpec] = {
-    "iql": AlgoSpec("iql", ValueConfig, _value("none"), "independent Q-learning"),
-    "vdn": AlgoSpec("vdn", ValueConfig, _value("sum"), "value decomposition by sum"),
+    "iql": AlgoSpec("iql", ValueConfig, _value("none"), "independent Q-learning", **NO_STATE),
+    "vdn": AlgoSpec("vdn", ValueConfig, _value("sum"), "value decomposition by sum", **NO_STATE),
     "qmix": AlgoSpec("qmix", ValueConfig, _value("qmix"), "QMIX, mixer conditioned on the state"),
     "qmix_ns": AlgoSpec(
         "qmix_ns",
         ValueConfig,
         _value("qmix_ns"),
         "QMIX, mixer conditioned on the joint observation",
+        **NO_STATE,
     ),
     "rdn": AlgoSpec(
         "rdn",
         RDNConfig,
         lambda c, s, e, d: RDNLearner(c, s, e, d),
         "relevance decomposition network",
+        **NO_STATE,
     ),
     "cac": AlgoSpec(
         "cac",
@@ -95,6 +107,7 @@ ALGOS: dict[str, AlgoSpec] = {
         _cac(extended=False, masked=False),
         "centralised actor-critic, fresh episodes only",
         family="pg",
+        **PG_STATE,
     ),
     "ecac": AlgoSpec(
         "ecac",
@@ -103,6 +116,7 @@ ALGOS: dict[str, AlgoSpec] = {
         "CAC + semi-online cycling buffer and an off-policy critic pass",
         family="pg",
         extended=True,
+        **PG_STATE,
     ),
     "mcac": AlgoSpec(
         "mcac",
@@ -110,6 +124,7 @@ ALGOS: dict[str, AlgoSpec] = {
         _cac(extended=False, masked=True),
         "CAC + KL mask against a Polyak-averaged policy",
         family="pg",
+        **PG_STATE,
     ),
     "emcac": AlgoSpec(
         "emcac",
@@ -118,6 +133,7 @@ ALGOS: dict[str, AlgoSpec] = {
         "extended-masked CAC: cycling buffer, off-policy critic pass and KL mask",
         family="pg",
         extended=True,
+        **PG_STATE,
     ),
     "coma": AlgoSpec(
         "coma",

@@ -16,8 +16,9 @@ from cluster.commands import add_command
 TABLE_HELP = (
     "a table as key=value pairs, repeatable, e.g. "
     "name=cycling,kind=cycling,capacity=32,max_times_sampled=8,min_size_to_sample=32 or "
-    "name=replay,kind=replay,capacity=5000,samples_per_insert=4,error_buffer=64 "
-    "(default: cycling 32/K=8 and replay 5000)"
+    "name=replay,kind=replay,capacity=5000,max_bytes=2147483648,samples_per_insert=4,"
+    "error_buffer=64 (max_bytes: the table's byte budget, 0 = none; default: cycling 32/K=8 "
+    "and replay 5000 within 2 GiB)"
 )
 log = logging.getLogger(__name__)
 LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}
@@ -57,6 +58,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("--no-fsync", action="store_true", help="ack inserts after write(), not fsync")
     s.add_argument("--seed", type=int, help="seed of the sampling RNG (default: random)")
+    s.add_argument(
+        "--no-state",
+        action="store_true",
+        help="drop each episode's global state on insert (for learners that never read it)",
+    )
     s.add_argument(
         "--snapshot-every",
         type=int,
@@ -129,7 +135,8 @@ def parse_table(spec: str) -> TableConfig:
     if "min_size_to_sample" in limiter:
         limiter["min_size_to_sample"] = int(limiter["min_size_to_sample"])
     table: dict = {
-        k: (int(v) if k in ("capacity", "max_times_sampled") else v) for k, v in d.items()
+        k: (int(v) if k in ("capacity", "max_times_sampled", "max_bytes") else v)
+        for k, v in d.items()
     }
     if "replacement" in table:
         flag = str(table["replacement"]).lower()
@@ -162,6 +169,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         repair=args.repair,
         metrics_port=args.metrics_port,
         seed=args.seed,
+        store_state=not args.no_state,
     )
     cfg.validate()
     return cfg

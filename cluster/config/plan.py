@@ -20,6 +20,7 @@ class DataPlan:
         updates_per_episode: learner steps per inserted episode (per ensemble member).
         extra_table: a second batch's table (E-CAC's off-policy critic pass), or None.
         extra_batch_size: that batch's size.
+        store_state: whether the tables keep the episodes' state (the learner reads it).
     """
 
     tables: tuple[TableConfig, ...]
@@ -28,12 +29,14 @@ class DataPlan:
     updates_per_episode: float
     extra_table: str | None = None
     extra_batch_size: int = 0
+    store_state: bool = True
 
 
 def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
     """Tables and batches for `cfg`'s algorithm family.
 
-    value family: `replay` (replay.capacity), batches of replay.batch_size,
+    Every table keeps the state only when the algorithm reads it (`AlgoSpec.reads_state`).
+    value family: `replay` (replay.capacity within replay.max_mib), batches of replay.batch_size,
         replay.updates_per_episode learner steps per inserted episode.
     policy gradient, on-policy (cac, mcac, coma): `cycling` holding exactly the newest
         run.num_envs episodes, each used once: one step per round of run.num_envs episodes.
@@ -62,11 +65,13 @@ def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
         name="replay",
         kind="replay",
         capacity=rp.capacity,
+        max_bytes=int(rp.max_mib * 2**20),
         replacement=rp.with_replacement,
         rate_limiter=limiter(replay_spi, bs, bs),
     )
+    state = spec.reads_state(cfg.algo)
     if value:
-        return DataPlan((replay,), "replay", bs, rp.updates_per_episode)
+        return DataPlan((replay,), "replay", bs, rp.updates_per_episode, store_state=state)
     capacity = cfg.cycling.capacity if spec.extended else n_new
     cycling_limiter = limiter(capacity / n_new, capacity, capacity)
     if spec.extended and bs > capacity:
@@ -85,5 +90,5 @@ def data_plan(cfg: TrainConfig, actors: int = 1) -> DataPlan:
         rate_limiter=cycling_limiter,
     )
     if not spec.extended:
-        return DataPlan((cycling,), "cycling", capacity, 1 / n_new)
-    return DataPlan((cycling, replay), "cycling", capacity, 1 / n_new, "replay", bs)
+        return DataPlan((cycling,), "cycling", capacity, 1 / n_new, store_state=state)
+    return DataPlan((cycling, replay), "cycling", capacity, 1 / n_new, "replay", bs, state)

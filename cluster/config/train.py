@@ -15,6 +15,7 @@ import torch
 from actors.envs.base import EnvError
 from actors.envs.registry import get_spec
 from actors.policy import ExplorationConfig
+from buffer_service.config import DEFAULT_REPLAY_MAX_BYTES
 from cluster.config.schema import (
     ConfigError,
     build,
@@ -53,6 +54,10 @@ class ReplayConfig:
 
     Attributes:
         capacity: episodes kept (oldest dropped).
+        max_mib: byte budget of the episodes kept, per replay (one per seed), in MiB of
+            their stored form (`buffer_service.packed`: about 3.2 KB per env step on
+            bane_vs_bane); the oldest are dropped beyond it, whatever their count and length.
+            The default holds 5,000 bane_vs_bane episodes of up to ~130 steps on average.
         batch_size: episodes per update.
         updates_per_episode: learner updates per inserted episode (the replay ratio; PyMARL's
             1: a batch of batch_size per new episode). The same in `--mode local` and
@@ -63,6 +68,7 @@ class ReplayConfig:
     """
 
     capacity: int = 1000
+    max_mib: float = DEFAULT_REPLAY_MAX_BYTES / 2**20
     batch_size: int = 32
     updates_per_episode: float = 1.0
     with_replacement: bool = True
@@ -70,6 +76,8 @@ class ReplayConfig:
     def validate(self) -> None:
         if self.capacity < 1 or self.batch_size < 1:
             raise ValueError("capacity and batch_size must be >= 1")
+        if not 0 < self.max_mib < 2**30:
+            raise ValueError(f"max_mib must be a number of MiB > 0, got {self.max_mib}")
         if not self.updates_per_episode > 0:
             raise ValueError(f"updates_per_episode must be > 0, got {self.updates_per_episode}")
         if self.batch_size > self.capacity:

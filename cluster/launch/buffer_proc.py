@@ -36,6 +36,7 @@ def table_arg(t: TableConfig) -> str:
     r = t.rate_limiter
     return (
         f"name={t.name},kind={t.kind},capacity={t.capacity},max_times_sampled={t.max_times_sampled},"
+        f"max_bytes={t.max_bytes},"
         f"replacement={str(t.replacement).lower()},"
         f"min_size_to_sample={r.min_size_to_sample},samples_per_insert={r.samples_per_insert},"
         f"error_buffer={r.error_buffer}"
@@ -65,8 +66,10 @@ class BufferProcess:
         host: str = "127.0.0.1",
         seed: int | None = None,
         repair: bool = False,
+        store_state: bool = True,
     ):
         self.tables, self.schema, self.folder = tables, schema, Path(folder)
+        self.store_state = store_state
         self.seed, self.repair = seed, repair
         self.fsync, self.metrics = fsync, metrics
         self.token = token or secrets.token_hex(16)
@@ -89,6 +92,8 @@ class BufferProcess:
             cmd += ["--seed", str(self.seed)]
         if self.repair:
             cmd.append("--repair")
+        if not self.store_state:
+            cmd.append("--no-state")
         if self.metrics:
             cmd += ["--metrics-port", str(self.metrics_port or 0)]
         return cmd

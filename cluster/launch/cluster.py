@@ -63,6 +63,7 @@ class ClusterTrainer:
             host=self.ccfg.bind_host,
             seed=cfg.run.seed * 1000,  # what local mode's (first) tables sample with
             repair=self.ccfg.buffer_repair,
+            store_state=self.plan.store_state,
         )
         self.metrics = LearnerMetrics() if self.ccfg.metrics else None
         self.stats = LoopStats()

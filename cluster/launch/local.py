@@ -36,7 +36,9 @@ class LocalData:
         self.core, self.stats, self.plan = core, stats, core.plan
         seed, schema = core.cfg.run.seed, core.info.schema()
         self.buffers = [
-            LocalBuffer(self.plan.tables, seed=seed * 1000 + k, schema=schema)
+            LocalBuffer(
+                self.plan.tables, seed * 1000 + k, schema, store_state=self.plan.store_state
+            )
             for k in range(core.E)
         ]
         self.update_credit = 0.0  # learner steps owed to the episodes inserted so far

@@ -82,6 +82,7 @@ class RolloutActor:
 
     def __init__(self, cfg: ActorConfig, buffer: BufferAddress, coordinator: str):
         self.actor_id = cfg.actor_id
+        self.send_state = cfg.send_state
         venv = make_vec_env(cfg.env_id, cfg.num_envs, seed=cfg.seed, **cfg.env_args)
         self.worker = RolloutWorker.from_spec(
             venv, cfg.acting, cfg.exploration, cfg.actor_id, cfg.seed, next_seq=clock_seq
@@ -151,7 +152,7 @@ class RolloutActor:
         shutdown would cut."""
         while True:
             try:
-                self.client.insert(episodes, timeout_s=INSERT_WAIT_S)
+                self.client.insert(episodes, timeout_s=INSERT_WAIT_S, state=self.send_state)
                 return
             except RateLimitedError:
                 self.counters.insert_refusals += 1

@@ -160,6 +160,7 @@ class RayActing:
             acting=self.core.learner.acting,
             metrics=self.ccfg.metrics,
             bind_host=self.ccfg.bind_host,
+            send_state=self.core.plan.store_state,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------

@@ -34,7 +34,7 @@ def _cfg(algo="vdn", env="matrix/two_step", *sets):
 def test_local_inserts_are_validated_against_the_schema():
     trainer = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=4"))
     trainer.train()
-    good = trainer.data.buffers[0].sample_episodes("replay", 1)[0]
+    good = trainer.data.buffers[0].sample_episodes("replay", 1)[0].unpack()  # (no state: vdn)
     bad = dataclasses.replace(good, actions=good.actions + 100, episode_seq=10**9)
     with pytest.raises(EpisodeError, match="actions"):
         trainer.data.insert([bad], 1)
@@ -193,7 +193,9 @@ def test_actor_config_holds_only_the_actor_section(tmp_path):
         "acting",
         "metrics",
         "bind_host",
+        "send_state",
     }
+    assert ac.send_state  # qmix's mixer reads the state
 
 
 @pytest.mark.parametrize("name", sorted(ALGOS))
