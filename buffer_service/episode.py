@@ -247,7 +247,8 @@ class EpisodeBatch:
             raise EpisodeError("cannot batch zero episodes")
         whole = cls.from_episodes(flat, pad_to=max(ep.length for ep in flat))
         arrays = {f.name: getattr(whole, f.name) for f in fields(cls)}
-        return cls(**{k: a.reshape(len(members), -1, *a.shape[1:]) for k, a in arrays.items()})
+        e, b = len(members), len(members[0])  # (not -1: a state of width 0 has no size)
+        return cls(**{k: a.reshape(e, b, *a.shape[1:]) for k, a in arrays.items()})
 
     @classmethod
     def stack(cls, batches: list[EpisodeBatch]) -> EpisodeBatch:

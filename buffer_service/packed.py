@@ -26,8 +26,8 @@ of shape [T+1, 0].
 
 from __future__ import annotations
 
+import mmap
 from dataclasses import dataclass, replace
-from functools import cached_property
 
 import numpy as np
 
@@ -41,8 +41,43 @@ from buffer_service.episode import (
 
 PACKING = 1  # the layout version written by `PackedEpisode.pack`; the wire records it
 ONE_BITS = np.float32(1.0).view(np.uint32)
-OVERHEAD_BYTES = 600  # Python objects of one stored episode, counted into `nbytes` (measured
-#   with tracemalloc on 1,000 packed episodes: the dataclass, its ndarray header and tuples)
+# The Python objects of one stored episode, counted into `nbytes`: the dataclass, its array's
+# header, its counts, and the buffer's bookkeeping (dicts of keys, refs, dedup); tracemalloc
+# measured 868 bytes an episode over 2,000 inserted into a BufferState.
+OVERHEAD_BYTES = 900
+
+
+MAPPED_MIN_BYTES = 64 * 2**10  # buffers at least this large get their own mapping
+
+
+def stored_buffer(nbytes: int) -> np.ndarray:
+    """A uint8 buffer for one stored episode, outside malloc's heap when it is large.
+
+    Stored episodes live long and are freed in FIFO order, while the learner allocates and
+    frees blocks of tens of MiB on every update. From one heap (with `run.keep_freed_memory`
+    every block comes from it and it is never trimmed) the episodes pin the heap's holes, so
+    the update's blocks keep needing fresh memory on top and the process grows by about the
+    stored bytes again. A buffer of its own (an anonymous mmap, unmapped when the last
+    view of it goes) keeps the replay out of the heap: resident memory is the heap's peak
+    plus the stored bytes (rounded up to pages). Small buffers (3m's episodes) stay on the
+    heap, where a page each would waste more than fragmentation costs.
+    """
+    if nbytes >= MAPPED_MIN_BYTES:
+        try:
+            return np.frombuffer(mmap.mmap(-1, nbytes), np.uint8)
+        except OSError:  # out of mappings (vm.max_map_count): the heap will do
+            pass
+    return np.empty(nbytes, np.uint8)
+
+
+def joined(parts: list[np.ndarray]) -> np.ndarray:
+    """`parts` (flat uint8) concatenated into one `stored_buffer`."""
+    out = stored_buffer(sum(p.size for p in parts))
+    pos = 0
+    for p in parts:
+        out[pos : pos + p.size] = p
+        pos += p.size
+    return out
 
 
 def _bits(n: int) -> int:
@@ -61,9 +96,14 @@ class FloatCounts:
     nonzero: int
     values: int
 
+    @property
+    def flagged_rows(self) -> int:
+        """Rows with a live bit: all of them, none when there are no features (no state)."""
+        return self.rows if self.features else 0
+
     def bit_bytes(self) -> tuple[int, int, int]:
         """Bytes of the live, nonzero and ones sections."""
-        return _bits(self.rows), _bits(self.live * self.features), _bits(self.nonzero)
+        return _bits(self.flagged_rows), _bits(self.live * self.features), _bits(self.nonzero)
 
     def check(self, name: str) -> None:
         if not (
@@ -85,7 +125,8 @@ def encode_floats(a: np.ndarray) -> tuple[FloatCounts, np.ndarray, list[np.ndarr
     ones = nzvals == ONE_BITS
     values = nzvals[~ones].view(np.float32)
     counts = FloatCounts(a.shape[0], a.shape[1], int(rows.shape[0]), nzvals.size, values.size)
-    return counts, values, [np.packbits(live), np.packbits(nz), np.packbits(ones)]
+    live_bits = np.packbits(live[: counts.flagged_rows])
+    return counts, values, [live_bits, np.packbits(nz), np.packbits(ones)]
 
 
 def decode_floats(c: FloatCounts, values: np.ndarray, sections: list[np.ndarray], out) -> None:
@@ -132,9 +173,10 @@ class PackedEpisode:
     def action_dtype(self) -> np.dtype:
         return np.dtype(np.uint8) if self.dims[3] <= 256 else np.dtype("<i4")
 
-    @cached_property
+    @property
     def layout(self) -> dict[str, tuple[int, int]]:
-        """name -> (offset, bytes) of every section of `data`."""
+        """name -> (offset, bytes) of every section of `data` (computed on each call: a
+        cached copy would cost every stored episode a kilobyte)."""
         t, (n, _, _, a) = self.length, self.dims
         oc, sc = self.obs_counts, self.state_counts
         sizes = [
@@ -155,8 +197,8 @@ class PackedEpisode:
     def expected_bytes(self) -> int:
         return sum(size for _, size in self.layout.values())
 
-    def _view(self, name: str, dtype=np.uint8) -> np.ndarray:
-        off, size = self.layout[name]
+    def _view(self, name: str, dtype=np.uint8, layout: dict | None = None) -> np.ndarray:
+        off, size = (layout or self.layout)[name]
         return self.data[off : off + size].view(dtype)
 
     @property
@@ -170,7 +212,10 @@ class PackedEpisode:
     @property
     def nbytes(self) -> int:
         """What storing this episode costs: its buffer plus the Python objects around it."""
-        return int(self.data.nbytes) + OVERHEAD_BYTES
+        size = int(self.data.nbytes)
+        if size >= MAPPED_MIN_BYTES:  # its own mapping: whole pages
+            size = -(-size // mmap.PAGESIZE) * mmap.PAGESIZE
+        return size + OVERHEAD_BYTES
 
     # -- packing --------------------------------------------------------------------------
     @classmethod
@@ -199,7 +244,7 @@ class PackedEpisode:
         actions = ep.actions.astype(np.uint8 if a <= 256 else np.dtype("<i4"))
         parts = [ov, sv, np.asarray(ep.reward, np.float32), actions, *obits, *sbits]
         parts.append(np.packbits(ep.avail_actions.reshape(-1)))
-        data = np.concatenate([np.ascontiguousarray(p).reshape(-1).view(np.uint8) for p in parts])
+        data = joined([np.ascontiguousarray(p).reshape(-1).view(np.uint8) for p in parts])
         return cls(
             length=t,
             dims=(n, o, s, a),
@@ -214,16 +259,15 @@ class PackedEpisode:
 
     def without_state(self) -> PackedEpisode:
         """This episode with its state dropped (a copy of the rest of the buffer)."""
-        secs = self.layout
-        keep = [k for k in secs if not k.startswith("state")]
-        data = np.concatenate([self._view(k) for k in keep])
+        lay = self.layout
+        data = joined([self._view(k, layout=lay) for k in lay if not k.startswith("state")])
         n, o, _, a = self.dims
         empty = FloatCounts(self.length + 1, 0, 0, 0, 0)
         return replace(self, dims=(n, o, 0, a), state_counts=empty, data=data)
 
     def owned(self) -> PackedEpisode:
         """A copy whose buffer owns its bytes (not a view of a received frame)."""
-        return replace(self, data=np.array(self.data, np.uint8))
+        return replace(self, data=joined([self.data]))
 
     # -- checks ---------------------------------------------------------------------------
     def check_layout(self) -> None:
@@ -243,9 +287,10 @@ class PackedEpisode:
                 f"packed episode: data holds {self.data.size} bytes, its counts need "
                 f"{self.expected_bytes()}"
             )
+        lay = self.layout
         for prefix, c in (("obs", oc), ("state", sc)):
             for name, bits in zip(("live", "nonzero", "ones"), self._bit_counts(c), strict=True):
-                sec = self._view(f"{prefix}_{name}")
+                sec = self._view(f"{prefix}_{name}", layout=lay)
                 got = int(np.unpackbits(sec).sum())
                 if got != bits[0] or int(np.unpackbits(sec, count=bits[1]).sum()) != got:
                     raise EpisodeError(f"packed {prefix}: {name} bits disagree with its counts")
@@ -254,7 +299,7 @@ class PackedEpisode:
     def _bit_counts(c: FloatCounts) -> list[tuple[int, int]]:
         """(bits set, bits used) of the live, nonzero and ones sections."""
         return [
-            (c.live, c.rows),
+            (c.live, c.flagged_rows),
             (c.nonzero, c.live * c.features),
             (c.nonzero - c.values, c.nonzero),
         ]
@@ -276,24 +321,22 @@ class PackedEpisode:
     # -- decoding -------------------------------------------------------------------------
     def write_into(self, out: dict[str, np.ndarray], i: int) -> None:
         """Decode into row `i` of a batch's zero-filled arrays (obs [B, T'+1, N, O], ...)."""
-        t, (n, o, s, a) = self.length, self.dims
-        decode_floats(
-            self.obs_counts,
-            self._view("obs_values", np.float32),
-            [self._view(k) for k in ("obs_live", "obs_nonzero", "obs_ones")],
-            out["obs"][i, : t + 1].reshape(-1, o),
-        )
-        if s:
-            decode_floats(
-                self.state_counts,
-                self._view("state_values", np.float32),
-                [self._view(k) for k in ("state_live", "state_nonzero", "state_ones")],
-                out["state"][i, : t + 1],
-            )
-        avail = np.unpackbits(self._view("avail"), count=(t + 1) * n * a)
+        t, (n, o, s, a), lay = self.length, self.dims, self.layout
+
+        def view(name: str, dtype=np.uint8) -> np.ndarray:
+            return self._view(name, dtype, lay)
+
+        for name, c, dst in (
+            ("obs", self.obs_counts, out["obs"][i, : t + 1].reshape(-1, o)),
+            ("state", self.state_counts, out["state"][i, : t + 1] if s else None),
+        ):
+            if dst is not None:
+                bits = [view(f"{name}_{k}") for k in ("live", "nonzero", "ones")]
+                decode_floats(c, view(f"{name}_values", np.float32), bits, dst)
+        avail = np.unpackbits(view("avail"), count=(t + 1) * n * a)
         out["avail_actions"][i, : t + 1] = avail.reshape(t + 1, n, a)
-        out["actions"][i, :t] = self._view("actions", self.action_dtype).reshape(t, n)
-        out["reward"][i, :t] = self._view("reward", np.float32)
+        out["actions"][i, :t] = view("actions", self.action_dtype).reshape(t, n)
+        out["reward"][i, :t] = view("reward", np.float32)
         out["terminated"][i, t - 1] = self.terminated_last
         out["filled"][i, :t] = True
 

@@ -1,0 +1,114 @@
+"""The packed episode form: exact (batches bit-identical to dense ones), compact, checked."""
+
+from __future__ import annotations
+
+import dataclasses
+import mmap
+
+import numpy as np
+import pytest
+
+from buffer_service.episode import Episode, EpisodeBatch, EpisodeError, EpisodeSchema
+from buffer_service.packed import MAPPED_MIN_BYTES, PackedEpisode, dense_bytes
+from tests.buffer_service.conftest import SCHEMA, make_episode
+
+BIG = EpisodeSchema(n_agents=6, obs_dim=40, state_dim=30, n_actions=9, max_t=60)
+
+
+def smac_like(seq: int, t: int, schema: EpisodeSchema = BIG) -> Episode:
+    """An episode shaped like SMAC's: dead agents' rows all zero, one-hot flags of exactly
+    1.0, other features any float (-0.0, denormals and 1.0 - ulp included)."""
+    rng = np.random.default_rng(seq)
+    n, o = schema.n_agents, schema.obs_dim
+    obs = rng.standard_normal((t + 1, n, o)).astype(np.float32)
+    obs[rng.random((t + 1, n, o)) < 0.6] = 0.0
+    obs[rng.random((t + 1, n, o)) < 0.2] = 1.0
+    obs[:, :, 0] = -0.0
+    obs[:, :, 1] = np.float32(1e-40)  # denormal
+    obs[:, :, 2] = np.nextafter(np.float32(1.0), np.float32(0.0))
+    dead = rng.random((t + 1, n)) < 0.5
+    obs[dead] = 0.0
+    state = rng.standard_normal((t + 1, schema.state_dim)).astype(np.float32)
+    state[:, ::3] = 0.0
+    avail = (rng.random((t + 1, n, schema.n_actions)) < 0.5).astype(np.uint8)
+    avail[..., 0] = 1
+    ep = make_episode(0, seq, t, schema)
+    return dataclasses.replace(ep, obs=obs, state=state, avail_actions=avail)
+
+
+def _same(a, b) -> None:
+    for f in dataclasses.fields(EpisodeBatch):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        assert x.dtype == y.dtype and x.shape == y.shape, f.name
+        assert x.tobytes() == y.tobytes(), f.name  # bit for bit (-0.0 is not 0.0 here)
+
+
+def test_batches_of_packed_episodes_are_bit_identical_to_dense_ones():
+    eps = [smac_like(i, t) for i, t in enumerate([3, 17, 60, 1, 25, 60])]
+    packed = [PackedEpisode.pack(ep) for ep in eps]
+    for p in packed:
+        p.validate(BIG)
+    _same(EpisodeBatch.from_episodes(packed), EpisodeBatch.from_episodes(eps))
+    _same(EpisodeBatch.from_episodes(packed, pad_to=70), EpisodeBatch.from_episodes(eps, 70))
+    members = [eps[:3], eps[3:]]
+    packed_members = [packed[:3], packed[3:]]
+    _same(EpisodeBatch.from_members(packed_members), EpisodeBatch.from_members(members))
+    # a mixed batch (old dense episodes beside packed ones) is the same too
+    _same(EpisodeBatch.from_episodes([eps[0], packed[1]]), EpisodeBatch.from_episodes(eps[:2]))
+
+
+def test_without_the_state_everything_else_is_unchanged():
+    eps = [smac_like(i, t) for i, t in enumerate([5, 9])]
+    bare = [PackedEpisode.pack(ep, state=False) for ep in eps]
+    assert bare[0].has_state is False
+    for p in bare:
+        p.validate(BIG)
+    batch, dense = EpisodeBatch.from_episodes(bare), EpisodeBatch.from_episodes(eps)
+    assert batch.state.shape == (2, 10, 0)
+    for name in ("obs", "avail_actions", "actions", "reward", "terminated", "filled"):
+        assert getattr(batch, name).tobytes() == getattr(dense, name).tobytes(), name
+    assert PackedEpisode.pack(PackedEpisode.pack(eps[0]), state=False).data.tobytes() == (
+        bare[0].data.tobytes()
+    )
+    members = EpisodeBatch.from_members([bare[:1], bare[1:]])
+    assert members.state.shape == (2, 1, 10, 0)
+    with pytest.raises(EpisodeError, match="with and without the state"):
+        EpisodeBatch.from_episodes([bare[0], PackedEpisode.pack(eps[1])])
+
+
+def test_packed_is_much_smaller_on_sparse_observations():
+    eps = [smac_like(i, 40) for i in range(4)]
+    dense = sum(dense_bytes(ep) for ep in eps)
+    packed = sum(PackedEpisode.pack(ep, state=False).nbytes for ep in eps)
+    assert packed < dense / 3, (packed, dense)
+
+
+def test_what_cannot_be_packed_or_does_not_fit_the_schema_is_refused():
+    ep = make_episode(0, 0, t=4)
+    with pytest.raises(EpisodeError, match="filled"):
+        PackedEpisode.pack(dataclasses.replace(ep, filled=np.zeros(4, bool)))
+    early = np.array([True, False, False, True])
+    with pytest.raises(EpisodeError, match="terminated"):
+        PackedEpisode.pack(dataclasses.replace(ep, terminated=early))
+    with pytest.raises(EpisodeError, match="avail_actions"):
+        PackedEpisode.pack(dataclasses.replace(ep, avail_actions=ep.avail_actions * 2))
+    nan = ep.obs.copy()
+    nan[1, 1, 1] = np.nan
+    with pytest.raises(EpisodeError, match="NaN"):
+        PackedEpisode.pack(dataclasses.replace(ep, obs=nan)).validate(SCHEMA)
+    other = EpisodeSchema(n_agents=4, obs_dim=5, state_dim=7, n_actions=4, max_t=10)
+    with pytest.raises(EpisodeError, match="shape"):
+        PackedEpisode.pack(ep).validate(other)
+
+
+def test_large_episodes_are_stored_outside_the_heap_and_copied_out_of_frames():
+    wide = EpisodeSchema(n_agents=24, obs_dim=80, state_dim=30, n_actions=9, max_t=60)
+    ep = PackedEpisode.pack(smac_like(1, 60, wide))
+    assert ep.data.nbytes >= MAPPED_MIN_BYTES
+    assert PackedEpisode.pack(smac_like(1, 5)).data.base is None  # small: on the heap
+    assert isinstance(ep.data.base.obj, mmap.mmap)  # its own mapping (see stored_buffer)
+    assert ep.nbytes % 4096 == 900 % 4096  # whole pages, plus the objects' overhead
+    view = dataclasses.replace(ep, data=np.frombuffer(ep.data.tobytes(), np.uint8))
+    owned = view.owned()
+    assert not np.shares_memory(owned.data, view.data)
+    assert owned.data.tobytes() == ep.data.tobytes()
