@@ -1,7 +1,9 @@
 """`credit bench codec`: wire codec throughput against a plain memcpy of the same bytes.
 
 The payload is one sample reply of a bane_vs_bane-sized batch (N=24 agents, obs 336, state
-984, 30 actions, T=200, batch 32, about 240 MB of arrays). Encoding packs the reply frame
+984, 30 actions, T=200, batch 32, about 240 MB of arrays; random, so dense: packed as the
+buffer stores them, `buffer_service.packed`, they take about as much). Encoding packs the
+reply frame
 (msgpack bin straight from each array's memory); decoding unpacks it and wraps every
 array with np.frombuffer. memcpy copies the same number of bytes between two preallocated
 buffers (``memcpy_gb_per_s``; ``memcpy_fresh_buffer_gb_per_s`` copies into a newly
@@ -18,7 +20,8 @@ import time
 import numpy as np
 
 from buffer_service import codec
-from buffer_service.episode import EPISODE_ARRAYS, Episode, EpisodeSchema
+from buffer_service.episode import Episode, EpisodeSchema
+from buffer_service.packed import PackedEpisode
 from cluster.bench.common import emit
 from cluster.commands import add_command
 
@@ -66,10 +69,11 @@ def _best(fn, repeats: int) -> tuple[float, object]:
 def run(batch: int, t: int, repeats: int) -> dict:
     rng = np.random.default_rng(0)
     eps = [bane_episode(i, t, rng) for i in range(batch)]
-    nbytes = sum(getattr(ep, f).nbytes for ep in eps for f in EPISODE_ARRAYS)
+    stored = [PackedEpisode.pack(ep) for ep in eps]  # what the server holds and sends
+    nbytes = sum(p.data.nbytes for p in stored)
 
     def reply() -> dict:
-        return {"ok": True, "v": 1, "episodes": [codec.episode_to_wire(e) for e in eps]}
+        return {"ok": True, "v": 2, "episodes": [codec.episode_to_wire(p) for p in stored]}
 
     def encode() -> np.ndarray:  # one contiguous frame body: every array byte copied once
         return codec.pack_contiguous(reply())
@@ -80,7 +84,7 @@ def run(batch: int, t: int, repeats: int) -> dict:
     body = codec.pack(reply())
     assert encode().tobytes() == body
 
-    def decode() -> list[Episode]:
+    def decode() -> list[PackedEpisode]:
         return [codec.episode_from_wire(w) for w in codec.unpack(body)["episodes"]]
 
     src = np.frombuffer(body, np.uint8)[:nbytes]
