@@ -112,3 +112,69 @@ def test_large_episodes_are_stored_outside_the_heap_and_copied_out_of_frames():
     owned = view.owned()
     assert not np.shares_memory(owned.data, view.data)
     assert owned.data.tobytes() == ep.data.tobytes()
+
+
+def _storage_with(tmp_path, episodes, wire) -> None:
+    """A buffer folder whose snapshot and log hold `episodes` written with `wire` (the
+    episode map of some version: protocol 1's dense map, or a packed one)."""
+    from buffer_service import codec, records, snapshots
+    from buffer_service.config import BufferConfig
+    from buffer_service.state import BufferState
+    from buffer_service.storage import Storage
+    from tests.buffer_service.conftest import table
+
+    cfg = BufferConfig(tables=(table("replay", "replay", capacity=100),), schema=SCHEMA)
+    state, storage = BufferState(cfg), Storage(str(tmp_path), tables=cfg.tables)
+    storage.restore(state)
+    for ep in episodes[:2]:
+        state.insert(ep, ["replay"])
+    real = snapshots.codec.episode_to_wire
+    snapshots.codec.episode_to_wire = lambda p: wire(p.unpack())  # as an older build wrote
+    try:
+        storage.snapshot(state)
+    finally:
+        snapshots.codec.episode_to_wire = real
+    for ep in episodes[2:]:
+        body = codec.pack({"op": "insert", "v": 1, "episodes": [wire(ep)]})
+        storage.append_insert(["replay"], body)
+    storage.sync()
+    storage.close()
+    assert records.scan_file(storage.path("log", storage.gen)).records
+
+
+def _restore(tmp_path, **kw):
+    from buffer_service.config import BufferConfig
+    from buffer_service.state import BufferState
+    from buffer_service.storage import Storage
+    from tests.buffer_service.conftest import table
+
+    cfg = BufferConfig(tables=(table("replay", "replay", capacity=100),), schema=SCHEMA, **kw)
+    state = BufferState(cfg)
+    Storage(str(tmp_path), tables=cfg.tables, read_only=True).restore(state)
+    return state
+
+
+def test_logs_and_snapshots_written_before_packing_are_read_and_packed(tmp_path):
+    from buffer_service import codec
+
+    eps = [make_episode(0, i, t=4) for i in range(4)]
+    _storage_with(tmp_path, eps, codec.dense_to_wire)
+    state = _restore(tmp_path, store_state=False)
+    assert sorted(state.episodes) == [(0, i) for i in range(4)]
+    for ep in eps:
+        got = state.episodes[ep.key]
+        assert isinstance(got, PackedEpisode) and not got.has_state  # dropped on reading
+        for name in ("obs", "avail_actions", "actions", "reward", "terminated"):
+            assert getattr(got, name).tobytes() == getattr(ep, name).tobytes(), name
+
+
+def test_a_log_of_an_unknown_packing_is_refused_by_name(tmp_path):
+    from buffer_service import codec
+    from buffer_service.storage import StorageError
+
+    def newer(ep: Episode, to_wire=codec.episode_to_wire) -> dict:  # (bound before patching)
+        return dict(to_wire(ep), packing=2)
+
+    _storage_with(tmp_path, [make_episode(0, i, t=4) for i in range(3)], newer)
+    with pytest.raises(StorageError, match="episode packing 2 is not one this build reads"):
+        _restore(tmp_path)

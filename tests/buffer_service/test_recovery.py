@@ -181,7 +181,7 @@ def _legacy_record(kind: bytes, meta, body: bytes = b"") -> bytes:
 def test_format_1_folders_are_read_and_converted(tmp_path):
     log0 = [_legacy_record(records.SCHEMA, SCHEMA.to_dict())]
     for i in range(15):
-        msg = {"op": "insert", "v": 1, "episodes": [codec.episode_to_wire(make_episode(0, i))]}
+        msg = {"op": "insert", "v": 1, "episodes": [codec.dense_to_wire(make_episode(0, i))]}
         log0.append(
             _legacy_record(records.INSERT, {"tables": ["cycling", "replay"]}, codec.pack(msg))
         )
