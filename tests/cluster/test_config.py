@@ -152,3 +152,37 @@ def test_an_unknown_recipe_names_the_valid_ones():
 )
 def test_iql_ships_two_updates_per_episode_on_smac_like_maps(algo, env, upe):
     assert load_train_config(algo, env, [], []).replay.updates_per_episode == upe
+
+
+@pytest.mark.parametrize(
+    ("algo", "sets", "stored"),
+    [
+        ("rdn", [], False),
+        ("vdn", [], False),
+        ("iql", [], False),
+        ("qmix_ns", [], False),
+        ("qmix", [], True),
+        ("coma", [], True),
+        ("emcac", [], False),  # the seed's critic sees the joint observation
+        ("emcac", ["algo.critic_input=obs_state"], True),
+    ],
+)
+def test_the_state_is_stored_only_for_learners_that_read_it(algo, sets, stored):
+    from cluster.config.plan import data_plan
+
+    plan = data_plan(load_train_config(algo, "skirmish/3m", [], sets))
+    assert plan.store_state is stored
+
+
+def test_the_replay_byte_budget_is_a_config_key_in_mib():
+    from buffer_service.config import DEFAULT_REPLAY_MAX_BYTES
+    from cluster.commands.buffer import parse_table
+    from cluster.config.plan import data_plan
+
+    (replay,) = data_plan(load_train_config("rdn", "skirmish/3m", [], [])).tables
+    assert replay.max_bytes == DEFAULT_REPLAY_MAX_BYTES
+    cfg = load_train_config("rdn", "skirmish/3m", [], ["replay.max_mib=64"])
+    assert data_plan(cfg).tables[0].max_bytes == 64 * 2**20
+    with pytest.raises(ConfigError, match="max_mib"):
+        load_train_config("rdn", "skirmish/3m", [], ["replay.max_mib=0"])
+    assert parse_table("name=replay,kind=replay,capacity=10,max_bytes=4096").max_bytes == 4096
