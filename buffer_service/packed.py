@@ -57,9 +57,9 @@ def stored_buffer(nbytes: int) -> np.ndarray:
     frees blocks of tens of MiB on every update. From one heap (with `run.keep_freed_memory`
     every block comes from it and it is never trimmed) the episodes pin the heap's holes, so
     the update's blocks keep needing fresh memory on top and the process grows by more than
-    the stored bytes (measured: `cluster.alloc`). A buffer of its own (an anonymous mmap, unmapped when the last
-    view of it goes) keeps the replay out of the heap: resident memory is the heap's peak
-    plus the stored bytes (rounded up to pages). Small buffers (3m's episodes) stay on the
+    the stored bytes (measured: `cluster.alloc`). A buffer of its own (an anonymous mmap,
+    unmapped when the last view of it goes) keeps the replay out of the heap: resident
+    memory is the heap's peak plus the stored bytes (rounded up to pages). Small buffers (3m's episodes) stay on the
     heap, where a page each would waste more than fragmentation costs.
     """
     if nbytes >= MAPPED_MIN_BYTES:
