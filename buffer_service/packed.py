@@ -59,8 +59,9 @@ def stored_buffer(nbytes: int) -> np.ndarray:
     the update's blocks keep needing fresh memory on top and the process grows by more than
     the stored bytes (measured: `cluster.alloc`). A buffer of its own (an anonymous mmap,
     unmapped when the last view of it goes) keeps the replay out of the heap: resident
-    memory is the heap's peak plus the stored bytes (rounded up to pages). Small buffers (3m's episodes) stay on the
-    heap, where a page each would waste more than fragmentation costs.
+    memory is the heap's peak plus the stored bytes (rounded up to pages). Small buffers
+    (3m's episodes) stay on the heap, where a page each would waste more than fragmentation
+    costs.
     """
     if nbytes >= MAPPED_MIN_BYTES:
         try:
