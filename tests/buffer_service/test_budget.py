@@ -16,7 +16,7 @@ from tests.buffer_service.conftest import SCHEMA, make_episode
 
 MIB = 2**20
 
-# Fill a replay of a 32 MiB budget with 4x that in packed episodes while an "update" (a
+# Fill a replay of a 16 MiB budget with 4x that in packed episodes while an "update" (a
 # 48 MiB block, allocated, touched and freed) runs every 10 inserts, under the training's
 # allocator settings (run.keep_freed_memory); print the table and the resident sizes.
 CHILD = textwrap.dedent(
@@ -36,7 +36,7 @@ CHILD = textwrap.dedent(
                 return int(line.split()[1]) * 1024
 
     kept = keep_freed_memory()
-    budget = 32 * 2**20
+    budget = 16 * 2**20
     wide = EpisodeSchema(n_agents=24, obs_dim=80, state_dim=30, n_actions=9, max_t=60)
     pool = [smac_like(i, 60, wide) for i in range(20)]
     buf = LocalBuffer((TableConfig("replay", "replay", capacity=10**6, max_bytes=budget),))
