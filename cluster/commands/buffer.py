@@ -16,9 +16,9 @@ from cluster.commands import add_command
 TABLE_HELP = (
     "a table as key=value pairs, repeatable, e.g. "
     "name=cycling,kind=cycling,capacity=32,max_times_sampled=8,min_size_to_sample=32 or "
-    "name=replay,kind=replay,capacity=5000,max_bytes=2147483648,samples_per_insert=4,"
+    "name=replay,kind=replay,capacity=5000,max_bytes=4294967296,samples_per_insert=4,"
     "error_buffer=64 (max_bytes: the table's byte budget, 0 = none; default: cycling 32/K=8 "
-    "and replay 5000 within 2 GiB)"
+    "and replay 5000 within 4 GiB)"
 )
 log = logging.getLogger(__name__)
 LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}

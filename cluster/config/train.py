@@ -57,7 +57,7 @@ class ReplayConfig:
         max_mib: byte budget of the episodes kept, per replay (one per seed), in MiB of
             their stored form (`buffer_service.packed`: about 3.2 KB per env step on
             bane_vs_bane); the oldest are dropped beyond it, whatever their count and length.
-            The default holds 5,000 bane_vs_bane episodes of up to ~130 steps on average.
+            The default (4 GiB) holds 5,000 bane_vs_bane episodes of its episode limit.
         batch_size: episodes per update.
         updates_per_episode: learner updates per inserted episode (the replay ratio; PyMARL's
             1: a batch of batch_size per new episode). The same in `--mode local` and
