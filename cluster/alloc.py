@@ -57,24 +57,3 @@ def keep_freed_memory() -> bool:
     if not ok:
         log.warning("glibc's mallopt refused M_MMAP_MAX=0 / M_TRIM_THRESHOLD; left as it was")
     return ok
-
-
-def release_freed_memory() -> bool:
-    """Hand the pages of the heap's free memory back to the OS (glibc's `malloc_trim(0)`);
-    the addresses stay the heap's, so later blocks fault pages in again as they touch them.
-
-    For after a large transient that the next updates will not reuse whole: the greedy
-    evaluation's rollout buffers (bane_vs_bane, 3 seeds x 20 envs: ~0.4 GiB) stayed resident
-    beside the update's working set, which was placed above them. Measured (RDN,
-    bane_vs_bane, 3 seeds, keep_freed_memory): once after the evaluation at t_env 0, the
-    resident size after 8 and 16 updates was 2,866 and 3,049 MiB against 3,180 and 3,204.
-    Returns False off glibc (nothing happens then)."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return False
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    trim(0)
-    return True

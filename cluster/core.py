@@ -27,7 +27,7 @@ import yaml
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
-from cluster.alloc import keep_freed_memory, release_freed_memory
+from cluster.alloc import keep_freed_memory
 from cluster.config.plan import data_plan
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
@@ -235,8 +235,6 @@ class TrainerCore:
         if self.t_env - self.last_test_t >= run.test_interval:
             records = self.evaluate()
             self.last_test_t = self.t_env
-            if run.keep_freed_memory:  # the evaluation's buffers: not kept beside the update's
-                release_freed_memory()
             if on_eval:
                 on_eval(records)
             if bar:

@@ -13,17 +13,15 @@ import pytest
 PROBE = textwrap.dedent(
     """
     import sys, torch
-    from cluster.alloc import keep_freed_memory, release_freed_memory
+    from cluster.alloc import keep_freed_memory
     def rss_mib():
         for line in open("/proc/self/status"):
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
-    kept = keep_freed_memory() if sys.argv[1] in ("keep", "release") else None
+    kept = keep_freed_memory() if sys.argv[1] == "keep" else None
     base = rss_mib()
     block = torch.ones(64 * 2**20)  # 256 MiB, touched
     del block
-    if sys.argv[1] == "release":
-        release_freed_memory()
     print(kept, round(rss_mib() - base))
     """
 )
@@ -45,5 +43,3 @@ def test_freed_memory_stays_resident_only_when_asked():
     assert default == "None"
     assert after_default < 64, "glibc returns a freed 256 MiB block to the OS by default"
     assert after_keep > 200, "with keep_freed_memory the freed block stays in the heap"
-    _, after_release = _probe("release")
-    assert after_release < 64, "release_freed_memory hands the freed pages back"
