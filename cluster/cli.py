@@ -16,6 +16,7 @@ from cluster.commands import demo as demo_cmd
 from cluster.commands import env as env_cmd
 from cluster.commands import inspect as inspect_cmd
 from cluster.commands import metrics as metrics_cmd
+from cluster.commands import report as report_cmd
 from cluster.commands import repro as repro_cmd
 from cluster.commands import train as train_cmd
 from cluster.config.schema import ConfigError
@@ -39,6 +40,7 @@ COMMANDS = [
     demo_cmd,
     train_cmd,
     repro_cmd,
+    report_cmd,
     env_cmd,
     inspect_cmd,
     bench_cmd,

@@ -22,7 +22,9 @@ from cluster.repro import curves as repro_curves
 from cluster.repro import emcac as repro_emcac
 from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
+from cluster.repro import report as repro_report
 from cluster.repro import smac as repro_smac
+from cluster.repro.aggregate import REPS, curve_scores, matrix_scores, max_return
 from cluster.repro.fanout import FanOutConfig
 from learner.registry import ALGOS
 
@@ -59,6 +61,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="env steps per run (default: cluster/config/layers/envs/matrix.yaml)",
     )
     _add_run_options(m)
+    m.add_argument(
+        "--summarise-only",
+        action="store_true",
+        help="train nothing: rebuild summary.json, the plots and report.html from "
+        "OUT/evals/*.jsonl (curves.json, which holds RDN's diagnostics, is kept)",
+    )
     m.set_defaults(func=cmd_matrix)
     register_emcac(rsub)
 
@@ -106,10 +114,18 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+    m.add_argument(
+        "--bootstrap-reps",
+        type=int,
+        default=REPS,
+        help=f"bootstrap draws of each aggregate interval in summary.json (default {REPS})",
+    )
 
 
 def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
     """The run options of a repro command as a checked FanOutConfig (UsageError if bad)."""
+    if args.bootstrap_reps < 1:
+        raise UsageError(f"--bootstrap-reps must be >= 1, got {args.bootstrap_reps}")
     cfg = FanOutConfig(
         workers=args.workers,
         address=args.address or None,
@@ -280,6 +296,9 @@ def cmd_curves(
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
     if figures is not None:
         plots += figures(curves, envs, out, summary)
+    best = {g: max_return(g, load_train_config(algos[0], g, [], overrides).env.args) for g in envs}
+    scores = curve_scores(curves, best, repro_curves.LAST)
+    _write_report(args, f"credit repro {name}", scores, summary, plots)
     write_json(out / "summary.json", summary)
     log.info("repro %s finished in %.0f s", name, time.monotonic() - started)
     for g in envs:
@@ -291,7 +310,7 @@ def cmd_curves(
                 f"{v['steps_to_50_smoothed']}/{v['steps_to_80_smoothed']}/"
                 f"{v['steps_to_95_smoothed']}  wall {v['wall_s']:.0f} s"
             )
-    print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
+    print(f"results in {out}: summary.json, curves.json, report.html, evals/, " + ", ".join(plots))
     return 0
 
 
@@ -316,23 +335,38 @@ def cmd_matrix(args: argparse.Namespace) -> int:
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = _run(
-        lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
-    )
+    if args.summarise_only:
+        curves = repro_matrix.load_evals(out / "evals", algos, games)
+        games = [g for g in games if any(c.game == g for c in curves)]
+        if not curves:
+            raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
+    else:
+        curves = _run(
+            lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+        )
+        (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     summary = repro_matrix.summarise(curves, optimum)
+    plots = [f"matrix_{g.split('/', 1)[1]}.png" for g in games]
+    for g, name in zip(games, plots, strict=True):
+        repro_matrix.plot(curves, g, out / name)
+    _write_report(args, "credit repro matrix", matrix_scores(curves, optimum), summary, plots)
     write_json(out / "summary.json", summary)
-    (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
-    for g in games:
-        repro_matrix.plot(curves, g, out / f"matrix_{g.split('/', 1)[1]}.png")
     log.info("repro matrix finished in %.0f s", time.monotonic() - started)
-    for a in algos:
+    for a in (a for a in algos if a in summary):
         cells = ", ".join(
             f"{g}: {v['optimal_runs']}/{v['runs']} optimal, median {v['final_return_median']:g}"
             for g, v in summary[a].items()
         )
         print(f"{a:8s} {cells}")
-    print(
-        f"results in {out}: summary.json, curves.json, "
-        + ", ".join(f"matrix_{g.split('/', 1)[1]}.png" for g in games)
-    )
+    made = "summary.json, " + ("" if args.summarise_only else "curves.json, ")
+    print(f"results in {out}: {made}report.html, " + ", ".join(plots))
     return 0
+
+
+def _write_report(args, title: str, scores, summary: dict, plots: list[str]) -> None:
+    """summary["aggregate"], the aggregate figures and report.html (`cluster.repro.report`)."""
+    out = Path(args.out)
+    figures = [(p, (out / p).read_bytes()) for p in plots]
+    repro_report.write_outputs(
+        out, f"{title}: {out}", scores, summary, figures, args.bootstrap_reps
+    )

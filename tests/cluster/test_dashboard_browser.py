@@ -22,12 +22,11 @@ from cluster.dashboard.server import (
 )
 from cluster.metrics import discovery
 from cluster.metrics import prometheus as prom
+from tests.cluster.browser import NEEDS_CHROMIUM, chromium
 from tests.cluster.polling import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = ROOT / "test-artifacts"
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
 # Panels a running RDN training feeds (the KL mask is EM-CAC's and stays at its initial 0).
 FED_PANELS = (
     "env_steps",
@@ -45,29 +44,13 @@ FED_PANELS = (
     "weights_version",
 )
 
-pytestmark = [
-    pytest.mark.skipif(CHROMIUM is None, reason="chromium not on PATH (apt-get install chromium)"),
-    pytest.mark.skipif(
-        CHROMEDRIVER is None, reason="chromedriver not on PATH (apt-get install chromium-driver)"
-    ),
-]
+pytestmark = NEEDS_CHROMIUM
 
 
 @pytest.fixture(scope="module")
 def browser():
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium not installed")
-    from selenium.webdriver.chrome.service import Service
-
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1600,1200", "--hide-scrollbars"):  # fmt: skip
-        opts.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
-    try:
+    with chromium() as driver:
         yield driver
-    finally:
-        driver.quit()
 
 
 def panel_state(driver) -> dict[str, dict]:
