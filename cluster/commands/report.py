@@ -45,11 +45,14 @@ def read_logs(log_dir: Path) -> tuple[list[str], list[str], bool]:
         first = next((x for x in path.read_text().splitlines() if x.strip()), None)
         if first is None:
             continue
+        env, _, algo = path.stem.replace("-", "/", 1).partition("__")
         try:
             row = json.loads(first)
-            envs[row["env"]], algos[row["algo"]] = None, None
-        except (json.JSONDecodeError, KeyError, TypeError):
-            raise UsageError(f"{path}: not an evaluation log of `credit repro`") from None
+        except json.JSONDecodeError:
+            row = None
+        if not isinstance(row, dict) or "t_env" not in row or "returns" not in row:
+            raise UsageError(f"{path}: not an evaluation log of `credit repro`")
+        envs[row.get("env", env)], algos[row.get("algo", algo)] = None, None
         wins = wins or "won" in row
     return list(envs), list(algos), wins
 

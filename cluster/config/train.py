@@ -133,6 +133,7 @@ class RunConfig:
     torch_threads: int = 1
     keep_freed_memory: bool = True
     max_policy_lag: int = 0
+    loggers: tuple[Literal["jsonl", "tensorboard", "wandb"], ...] = ("jsonl",)
 
     def validate(self) -> None:
         try:
@@ -153,6 +154,11 @@ class RunConfig:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
         if self.max_policy_lag < 0:
             raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
+        if "jsonl" not in self.loggers or len(set(self.loggers)) != len(self.loggers):
+            raise ValueError(
+                f"loggers must name jsonl (metrics.jsonl is the run's record) and each logger "
+                f"once, got {list(self.loggers)}"
+            )
 
 
 @dataclass(frozen=True)

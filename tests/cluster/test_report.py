@@ -16,7 +16,7 @@ from cluster.repro import aggregate
 from tests.cluster.browser import chromium, needs_chromium
 
 ROOT = Path(__file__).resolve().parents[2]
-REPS = 200  # bootstrap draws in these tests (the commands' default is aggregate.REPS)
+REPS = 50  # bootstrap draws in these tests (the commands' default is aggregate.REPS)
 
 
 def test_iqm_by_hand_and_each_interval_recomputed_with_rliable_alone():
