@@ -18,6 +18,7 @@ from cluster.commands import inspect as inspect_cmd
 from cluster.commands import metrics as metrics_cmd
 from cluster.commands import report as report_cmd
 from cluster.commands import repro as repro_cmd
+from cluster.commands import sweep as sweep_cmd
 from cluster.commands import train as train_cmd
 from cluster.config.schema import ConfigError
 from cluster.errors import UsageError
@@ -41,6 +42,7 @@ COMMANDS = [
     train_cmd,
     repro_cmd,
     report_cmd,
+    sweep_cmd,
     env_cmd,
     inspect_cmd,
     bench_cmd,
