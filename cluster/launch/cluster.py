@@ -21,6 +21,7 @@ from cluster.launch.ray_sides import RayActing, ServiceData
 from cluster.loop import TrainLoop, check_modes
 from cluster.metrics.exporters import LearnerMetrics
 from cluster.metrics.loop_stats import LoopStats
+from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,10 @@ class ClusterTrainer:
             seed=cfg.run.seed * 1000,  # what local mode's (first) tables sample with
             repair=self.ccfg.buffer_repair,
         )
-        self.metrics = LearnerMetrics() if self.ccfg.metrics else None
+        family = ALGOS[cfg.algo_name].family
+        self.metrics = (
+            LearnerMetrics(algo=cfg.algo_name, family=family) if self.ccfg.metrics else None
+        )
         self.stats = LoopStats()
         self.data = ServiceData(core, self.stats, self.buffer, self.metrics)
         self.acting = RayActing(core, self.out, self.buffer, self.stats, self.metrics)

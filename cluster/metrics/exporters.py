@@ -43,8 +43,13 @@ log = logging.getLogger(__name__)
 UPDATE_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
                           1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 # fmt: on
-#: Versions between the policy that acted and the learner's current one.
-POLICY_LAG_BUCKETS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64, 128)
+#: Versions between the policy that acted and the learner's current one: 0, then 1, 2, 3, 4,
+#: 6, 8, 12, ... (each power of two and 1.5 times it) up to 2^20. Replayed episodes are
+#: thousands of versions old on long runs (a top bucket of 128 clamped every percentile
+#: there); past the top, PromQL's histogram_quantile answers the top bucket's bound.
+POLICY_LAG_BUCKETS = tuple(
+    sorted({0, 1, *(2**k for k in range(1, 21)), *(3 * 2**k for k in range(19))})
+)
 
 #: Every name a scrape of an actor or learner exporter can show (counters with `_total`).
 ACTOR_METRIC_NAMES = (
@@ -62,6 +67,7 @@ LEARNER_METRIC_NAMES = (
     "credit_test_win_rate",
     "credit_kl_masked_fraction",
     "credit_actor_restarts_total",
+    "credit_run_info",
 )
 #: The buffer service's names (defined in `buffer_service/metrics.py`, listed for the dashboards).
 BUFFER_METRIC_NAMES = (
@@ -129,10 +135,23 @@ class LearnerMetrics:
 
     Args:
         registry: registry to register in; a fresh one when None.
+        algo, family: the run's algorithm and its family ("value" or "pg"), exposed as
+            credit_run_info{algo, family} = 1 so that a dashboard shows the panels that
+            algorithm feeds (none when not given).
     """
 
-    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+    def __init__(
+        self,
+        registry: CollectorRegistry | None = None,
+        algo: str | None = None,
+        family: str | None = None,
+    ) -> None:
         r = self.registry = registry if registry is not None else CollectorRegistry()
+        if algo is not None:
+            info = Gauge(
+                "credit_run_info", "The run's algorithm (value 1).", ["algo", "family"], registry=r
+            )
+            info.labels(algo=algo, family=family or "").set(1)
         self._updates = Counter(
             _counter_name("credit_learner_updates_total"), "Learner updates done.", registry=r
         )
