@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from cluster.metrics.exporters import RUN_INFO_NAME
+
 Op = Literal["rate", "value", "hist_mean", "hist_quantile"]
 
 
@@ -82,7 +84,7 @@ class Panel:
         return not self.algos or not algos or bool(algos & set(self.algos))
 
 
-RUN_INFO = "credit_run_info"  # the learner's {algo, family} gauge (`LearnerMetrics`)
+RUN_INFO = RUN_INFO_NAME  # the learner's {algo, family} gauge (`LearnerMetrics`)
 
 # The learning panels first: what a learner's user looks at before anything else.
 PANELS: tuple[Panel, ...] = (

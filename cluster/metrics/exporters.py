@@ -67,8 +67,10 @@ LEARNER_METRIC_NAMES = (
     "credit_test_win_rate",
     "credit_kl_masked_fraction",
     "credit_actor_restarts_total",
-    "credit_run_info",
 )
+#: The learner's credit_run_info{algo, family} = 1 when the launcher names the algorithm: what
+#: the dashboard picks its panels by (no chart of its own).
+RUN_INFO_NAME = "credit_run_info"
 #: The buffer service's names (defined in `buffer_service/metrics.py`, listed for the dashboards).
 BUFFER_METRIC_NAMES = (
     "credit_buffer_inserts_total",
@@ -149,7 +151,7 @@ class LearnerMetrics:
         r = self.registry = registry if registry is not None else CollectorRegistry()
         if algo is not None:
             info = Gauge(
-                "credit_run_info", "The run's algorithm (value 1).", ["algo", "family"], registry=r
+                RUN_INFO_NAME, "The run's algorithm (value 1).", ["algo", "family"], registry=r
             )
             info.labels(algo=algo, family=family or "").set(1)
         self._updates = Counter(
