@@ -109,9 +109,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     ray_cluster.apply_ray_environment()  # before anything imports ray
     try:
-        from cluster.repro import sweep as tune_sweep
+        # the tune extra's packages (pandas, pyarrow, ...) may be missing
+        import ray.tune
     except ImportError as e:
         raise UsageError(f"credit sweep needs Ray Tune: pip install 'credit[tune]' ({e})") from None
+    from cluster.repro import sweep as tune_sweep
+
     sweep, metric = _plan(args, tune_sweep)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -145,9 +148,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def _plan(args: argparse.Namespace, tune_sweep):
     """The checked Sweep and the metric ranked on (UsageError / ConfigError when bad)."""
     for name in ("seeds", "samples", "last", "bootstrap_reps", "workers", "max_failures"):
-        if getattr(args, name) < (0 if name == "max_failures" else 1):
+        low = 0 if name == "max_failures" else 1
+        if getattr(args, name) < low:
             flag = name.replace("_", "-")
-            raise UsageError(f"--{flag} must be positive, got {getattr(args, name)}")
+            raise UsageError(f"--{flag} must be >= {low}, got {getattr(args, name)}")
     grid, random = search_space(args)
     points = tune_sweep.points(grid, random, args.samples, args.search_seed)
     sets = [*args.set, *([f"run.t_max={args.t_max}"] if args.t_max else [])]

@@ -128,12 +128,13 @@ def summarise(scores: Scores, reps: int = REPS, seed: int = SEED) -> dict:
             "method": "percentile",
             "recompute": "np.random.seed(seed), then rliable.library.get_interval_estimates("
             "{name: scores}, func, reps=reps) for one algorithm (or one pair) per call; scores "
-            "is runs x envs; func aggregate_iqm, or probability_of_improvement(x, y) on "
-            "[x, y]",
+            "is runs x envs, the envs in the entry's order (sorted), each cut to its first "
+            "`runs` runs; func aggregate_iqm, or probability_of_improvement(x, y) on [x, y]",
         },
         "metrics": {},
     }
-    for metric, per_env in scores.items():
+    for metric, unsorted in scores.items():
+        per_env = {g: unsorted[g] for g in sorted(unsorted)}  # one column order, however run
         algos = list(dict.fromkeys(a for cells in per_env.values() for a in cells))
         entry: dict = {"label": LABELS.get(metric, metric), "per_env": {}, "across_envs": {}}
         for env, cells in per_env.items():
@@ -165,7 +166,8 @@ def _improvement(per_env: dict, algos: list[str], reps: int, seed: int) -> dict:
                 continue
             mx, my = runs_by_tasks(per_env, x, envs), runs_by_tasks(per_env, y, envs)
             p, ci = interval([mx, my], metrics.probability_of_improvement, reps, seed)
-            pairs[f"{x} > {y}"] = {"p": p, "ci": ci, "envs": envs}
+            runs = [mx.shape[0], my.shape[0]]
+            pairs[f"{x} > {y}"] = {"p": p, "ci": ci, "envs": envs, "runs": runs}
     return pairs
 
 
@@ -204,7 +206,7 @@ def plot(scores: Scores, summary: dict, out: Path, reps: int = REPS, seed: int =
     plt.close(fig)
     fig, axes = plt.subplots(1, len(names), figsize=(6 * len(names), 4.2), squeeze=False)
     for ax, metric in zip(axes[0], names, strict=True):
-        per_env = scores[metric]
+        per_env = {g: scores[metric][g] for g in sorted(scores[metric])}
         mats = {}
         for a in algos:
             envs = [g for g in per_env if a in per_env[g]]

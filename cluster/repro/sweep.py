@@ -97,8 +97,10 @@ def run_trial(config: dict, sweep: Sweep, root: str) -> None:
     trial = config["trial"]
     out = Path(root) / "trials" / trial["name"]
     where = f"{socket.gethostname()} (pid {os.getpid()})"
-    print(f"trial {trial['name']} started on {where}", file=sys.stderr, flush=True)
-    if not (out / "summary.json").exists():
+    if (out / "summary.json").exists():  # finished before the sweep was interrupted
+        print(f"trial {trial['name']} already finished: kept", file=sys.stderr, flush=True)
+    else:
+        print(f"trial {trial['name']} started on {where}", file=sys.stderr, flush=True)
         argv = sweep.argv(trial, out)
         if (out / "checkpoint" / "learner.pt").exists():
             argv = ["train", "--resume", str(out)]

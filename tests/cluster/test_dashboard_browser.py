@@ -71,14 +71,7 @@ def check_dashboard(driver, url: str, shot: str) -> dict[str, dict]:
         return s if ok and s["env_steps"]["points"] >= 16 else None
 
     state = wait_for(fed, timeout_s=90, what="every actor/learner panel to hold data points")
-    ARTIFACTS.mkdir(exist_ok=True)
-    (ARTIFACTS / ".gitignore").write_text("*\n")
-    height = driver.execute_script("return document.documentElement.scrollHeight")
-    # The whole page in one picture: make the viewport as tall as the page.
-    metrics = {"width": 1600, "height": int(height) + 20, "deviceScaleFactor": 1, "mobile": False}
-    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", metrics)
-    time.sleep(0.5)  # let the resize re-layout before the picture (not an assertion)
-    driver.save_screenshot(str(ARTIFACTS / shot))
+    _shot(driver, shot)
     (ARTIFACTS / shot).with_suffix(".json").write_text(json.dumps(state, indent=2))
     assert (ARTIFACTS / shot).stat().st_size > 10_000
     for pid, p in state.items():
@@ -118,6 +111,7 @@ def test_dashboard_reading_prometheus(running_training, browser, tmp_path):
 
 
 def _shot(driver, name: str) -> None:
+    """The whole page in one picture (the viewport made as tall as the page)."""
     ARTIFACTS.mkdir(exist_ok=True)
     (ARTIFACTS / ".gitignore").write_text("*\n")
     height = driver.execute_script("return document.documentElement.scrollHeight")
