@@ -9,10 +9,10 @@ Scores are one number per run (seed) of an algorithm on an env, in [0, 1]-ish un
 What "final" means is the experiment's own (`cluster.repro.curves`: the mean of the last 10
 evaluations, as Table 5.2; `cluster.repro.matrix`: the last evaluation).
 
-For every metric `summarise` gives, per env and algorithm and across envs, the interquartile
-mean (IQM, `rliable.metrics.aggregate_iqm`) with a stratified bootstrap confidence interval
-(`rliable.library.get_interval_estimates`, percentile method), and for each pair of algorithms
-the probability of improvement across the envs both ran on
+For every metric `summarise` gives, per env and algorithm (with the runs' scores) and across
+envs, the interquartile mean (IQM, `rliable.metrics.aggregate_iqm`) with a stratified
+bootstrap confidence interval (`rliable.library.get_interval_estimates`, percentile method),
+and for each pair of algorithms the probability of improvement across the envs both ran on
 (`rliable.metrics.probability_of_improvement`) with its interval. rliable draws its bootstrap
 indices from numpy's global generator, so every interval is computed in its own call, for one
 algorithm (or pair), right after `np.random.seed(seed)`: the recorded `reps` and `seed`
@@ -143,7 +143,12 @@ def summarise(scores: Scores, reps: int = REPS, seed: int = SEED) -> dict:
                 iqm, ci = interval(
                     np.asarray(runs, float)[:, None], metrics.aggregate_iqm, reps, seed
                 )
-                entry["per_env"][env][algo] = {"iqm": iqm, "ci": ci, "runs": len(runs)}
+                entry["per_env"][env][algo] = {
+                    "iqm": iqm,
+                    "ci": ci,
+                    "runs": len(runs),
+                    "scores": runs,
+                }
         for algo in algos:
             envs = [g for g in per_env if algo in per_env[g]]
             m = runs_by_tasks(per_env, algo, envs)

@@ -30,7 +30,7 @@ def test_iqm_by_hand_and_each_interval_recomputed_with_rliable_alone():
     agg = aggregate.summarise(scores, reps=REPS, seed=7)
     assert agg["bootstrap"] == agg["bootstrap"] | {"reps": REPS, "seed": 7, "confidence": 0.95}
     cell = agg["metrics"]["win_rate"]["per_env"]["m/a"]["x"]
-    assert cell["iqm"] == pytest.approx(0.45) and cell["runs"] == 8
+    assert cell["iqm"] == pytest.approx(0.45) and cell["runs"] == 8 and cell["scores"] == runs
     lo, hi = cell["ci"]
     assert lo < 0.45 < hi
     # The summary's recipe, followed with rliable directly.
