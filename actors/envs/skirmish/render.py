@@ -63,14 +63,15 @@ MIN_SPAN = 10.0  # the narrowest view, in map units
 
 def battle_view(snaps: list[dict[str, Any]]) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1): the square around every unit's position in `snaps` (one episode)
-    plus MARGIN, at least MIN_SPAN wide, kept inside the map where it fits."""
+    plus MARGIN, at least MIN_SPAN wide, inside the map (widened by MARGIN) where it fits."""
     xs = np.concatenate([np.asarray(s["x"], float) for s in snaps])
     ys = np.concatenate([np.asarray(s["y"], float) for s in snaps])
     map_w, map_h = snaps[0]["map"]
     span = max(MIN_SPAN, xs.max() - xs.min() + 2 * MARGIN, ys.max() - ys.min() + 2 * MARGIN)
     cx, cy = (xs.max() + xs.min()) / 2, (ys.max() + ys.min()) / 2
-    x0 = min(max(cx - span / 2, 0.0), max(map_w - span, 0.0))
-    y0 = min(max(cy - span / 2, 0.0), max(map_h - span, 0.0))
+    # inside the map but for the margin (a unit at the edge is drawn whole)
+    x0 = min(max(cx - span / 2, -MARGIN), max(map_w + MARGIN - span, -MARGIN))
+    y0 = min(max(cy - span / 2, -MARGIN), max(map_h + MARGIN - span, -MARGIN))
     return x0, x0 + span, y0, y0 + span
 
 

@@ -21,9 +21,9 @@ def test_the_view_holds_every_unit_with_a_margin_inside_the_map():
     assert x0 <= snap["x"].min() - MARGIN and snap["x"].max() + MARGIN <= x1
     assert y0 <= snap["y"].min() - MARGIN and snap["y"].max() + MARGIN <= y1
     assert x1 - x0 < snap["map"][0] / 2  # 3m's six units: well under half the 32-wide map
-    moved = {**snap, "x": snap["x"] * 0 + 31.5}  # units at the map's edge: view kept inside
+    moved = {**snap, "x": snap["x"] * 0 + 31.5}  # units at the map's edge: drawn whole
     x0, x1, _, _ = battle_view([snap, moved])
-    assert x1 <= snap["map"][0] and x0 >= 0
+    assert 31.5 + MARGIN <= x1 <= snap["map"][0] + MARGIN and x0 >= -MARGIN
 
 
 def _team_pixels(frame: np.ndarray, color: tuple[int, int, int]) -> np.ndarray:
