@@ -134,8 +134,9 @@ def summarise(scores: Scores, reps: int = REPS, seed: int = SEED) -> dict:
         "metrics": {},
     }
     for metric, unsorted in scores.items():
-        per_env = {g: unsorted[g] for g in sorted(unsorted)}  # one column order, however run
-        algos = list(dict.fromkeys(a for cells in per_env.values() for a in cells))
+        # envs and algorithms sorted: the same columns and pairs however the runs were made
+        per_env = {g: unsorted[g] for g in sorted(unsorted)}
+        algos = sorted({a for cells in per_env.values() for a in cells})
         entry: dict = {"label": LABELS.get(metric, metric), "per_env": {}, "across_envs": {}}
         for env, cells in per_env.items():
             entry["per_env"][env] = {}
