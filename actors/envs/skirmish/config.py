@@ -106,6 +106,12 @@ def make_config(**overrides: Any) -> SkirmishConfig:
     unknown = sorted(set(overrides) - set(valid))
     if unknown:
         raise EnvError(f"unknown skirmish options {unknown}; valid options: {valid}")
+    defaults = SkirmishConfig()
+    for key, value in overrides.items():
+        want = type(getattr(defaults, key))
+        ok = isinstance(value, want) or (want is float and isinstance(value, int))
+        if not ok or (want is not bool and isinstance(value, bool)):
+            raise EnvError(f"skirmish option {key}: expected {want.__name__}, got {value!r}")
     cfg = SkirmishConfig(**overrides)
     cfg.validate()
     return cfg

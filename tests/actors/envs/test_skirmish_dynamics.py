@@ -4,6 +4,7 @@ attack-moving enemy, baneling bursts), seeding, and the scripted-policy sanity t
 import numpy as np
 import pytest
 
+from actors.envs.base import EnvError
 from actors.envs.skirmish import SkirmishEnv, SkirmishVecEnv, make_skirmish_vec
 from actors.envs.skirmish.config import make_config
 from actors.envs.skirmish.scripts import POLICIES, evaluate
@@ -274,3 +275,14 @@ def test_scripted_policy_clearly_beats_random(name, policy):
     scripted = evaluate(venv, POLICIES[policy], 100, seed=0)["win_rate"]
     rand = evaluate(venv, POLICIES["random"], 100, seed=0)["win_rate"]
     assert scripted >= 0.5 and scripted >= rand + 0.4
+
+
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [({"bane_dodge": "far"}, "bane_dodge"), ({"step_mul": 8.0}, "step_mul"),
+     ({"reward_sparse": 1}, "reward_sparse"), ({"acquire_range": True}, "acquire_range")],
+)  # fmt: skip
+def test_options_of_the_wrong_type_are_named(options, named):
+    with pytest.raises(EnvError, match=named):
+        make_config(**options)
+    make_config(bane_dodge=1, acquire_range=9.0)  # an int where a float is due is fine
