@@ -85,10 +85,16 @@ def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.nda
     """ "Banelings charge, zerglings step aside" (the dissertation's bane_vs_bane rollout:
     the zerglings move backwards out of the banelings' way): banelings attack the nearest
     enemy; zerglings step back (away from the nearest enemy) while any baneling, ours or the
-    enemy's, lives, then attack the nearest enemy."""
+    enemy's, lives, then attack the nearest enemy. Once no allied zergling lives, the first
+    living allied baneling is kept in reserve and steps back too (a win needs a living
+    agent, and a baneling dies when it bursts)."""
     b, N = venv.battle, venv.st.N
     bane = b.kind == KINDS.index("baneling")  # [M, U]
     step = ~bane[:, :N] & (b.alive & bane).any(1)[:, None]
+    mine = bane[:, :N] & b.alive[:, :N]
+    no_lings = ~(~bane[:, :N] & b.alive[:, :N]).any(1)
+    first = np.arange(N)[None, :] == mine.argmax(1)[:, None]
+    step |= mine & first & no_lings[:, None]
     return _lings_make_way(venv, rng, step, _toward(venv, -1.0))
 
 
