@@ -19,7 +19,7 @@ import yaml
 
 from actors.envs.skirmish import make_skirmish_vec
 from actors.envs.skirmish.config import make_config
-from actors.envs.skirmish.maps import builtin_map
+from actors.envs.skirmish.maps import builtin_map, load_map_file
 from actors.envs.skirmish.scripts import POLICIES, evaluate
 from cluster.config.schema import parse_overrides
 from cluster.errors import UsageError
@@ -30,7 +30,7 @@ SANITY_MAPS = ["3m", "8m", "2s3z"]
 
 def default_policies(map_name: str) -> list[str]:
     """bane_charge, nearest and random on baneling maps; focus_fire, nearest and random else."""
-    first = "bane_charge" if map_name.startswith("bane") else "focus_fire"
+    first = "bane_charge" if _spec(map_name).name.startswith("bane") else "focus_fire"
     return [first, "nearest", "random"]
 
 
@@ -45,10 +45,15 @@ def parse_sweep(text: str | None) -> tuple[str | None, list]:
     return key.strip(), [yaml.safe_load(v) for v in values]
 
 
+def _spec(name: str):
+    """A built-in map by name, or a map file (a name ending in .yaml)."""
+    return load_map_file(name) if name.endswith(".yaml") else builtin_map(name)
+
+
 def check_inputs(maps: list[str], policies: list[str] | None, episodes: int, seeds: list[int]):
     """Name the first bad map, policy or count before anything runs."""
     for m in maps:
-        builtin_map(m)  # EnvError naming the map and the valid ones
+        _spec(m)  # EnvError naming the map (or file) and what is valid
     for p in policies or []:
         if p not in POLICIES:
             raise UsageError(f"unknown policy {p!r}; valid policies: {', '.join(POLICIES)}")
@@ -61,8 +66,8 @@ def run_case(map_name: str, policy: str, episodes: int, seeds: list[int], option
     """Evaluate one (map, policy) pair under `options` (SkirmishConfig fields) on each seed."""
     per_seed = []
     for s in seeds:
-        venv = make_skirmish_vec(min(episodes, num_envs), seed=1000 * s, map_name=map_name,
-                                 **options)  # fmt: skip
+        where = {"map_file": map_name} if map_name.endswith(".yaml") else {"map_name": map_name}
+        venv = make_skirmish_vec(min(episodes, num_envs), seed=1000 * s, **where, **options)
         per_seed.append({"seed": s, **evaluate(venv, POLICIES[policy], episodes, seed=s)})
     keys = ("win_rate", "timeout_rate", "mean_return", "mean_length")
     means = {k: float(np.mean([r[k] for r in per_seed])) for k in keys}

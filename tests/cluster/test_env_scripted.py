@@ -73,3 +73,18 @@ def test_bad_input_is_named_and_exits_2(capsys, argv, named):
     assert main(["env", "scripted", "--maps", "3m", "--episodes", "2", *argv]) == 2
     captured = capsys.readouterr()
     assert named in captured.err and captured.out == ""
+
+
+def test_a_map_file_plays_like_a_built_in_map(capsys, tmp_path):
+    path = tmp_path / "blob_3m.yaml"
+    path.write_text(
+        "episode_limit: 60\nformation: blob\n"
+        "allies: [{type: marine, count: 3, at: [9, 16]}]\n"
+        "enemies: [{type: marine, count: 3, at: [23, 16]}]\n"
+    )
+    rec = run(capsys, "--maps", str(path), "--episodes", "10", "--seeds", "0")
+    assert [r["policy"] for r in rec["results"]] == ["focus_fire", "nearest", "random"]
+    assert all(r["map"] == str(path) and r["episodes"] == 10 for r in rec["results"])
+    missing = tmp_path / "nowhere.yaml"
+    assert main(["env", "scripted", "--maps", str(missing), "--episodes", "2"]) == 2
+    assert "nowhere.yaml" in capsys.readouterr().err
