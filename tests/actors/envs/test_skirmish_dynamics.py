@@ -302,3 +302,18 @@ def test_bane_charge_keeps_one_baneling_back_when_no_zergling_lives():
     banes = venv.battle.kind[0, :9] == KINDS.index("baneling")
     assert banes.sum() == 4
     assert (POLICIES["bane_charge"](venv, np.random.default_rng(0))[:, banes] == 4).all()
+
+
+def test_bane_aside_sends_the_zerglings_out_of_the_lane():
+    # bane_vs_bane runs along x: zerglings above the banelings' line step north, those below
+    # south; the banelings advance east at the start.
+    venv = make_skirmish_vec(2, seed=0, map_name="bane_vs_bane")
+    venv.reset()
+    b, N = venv.battle, venv.st.N
+    acts = POLICIES["bane_aside"](venv, np.random.default_rng(0))
+    banes = b.kind[:, :N] == KINDS.index("baneling")
+    y0 = np.where(banes, b.y[:, :N], 0).sum(1, keepdims=True) / banes.sum(1, keepdims=True)
+    lings = ~banes
+    assert set(acts[lings & (b.y[:, :N] > y0)]) == {2}
+    assert set(acts[lings & (b.y[:, :N] < y0)]) == {3}
+    assert set(acts[banes]) == {4}
