@@ -92,3 +92,12 @@ def ladder(maps: list[str], policies: list[str] | None, episodes: int, seeds: li
             for p in policies or default_policies(m):
                 rows.append(run_case(m, p, episodes, seeds, options, num_envs))
     return rows
+
+
+if __name__ == "__main__":  # the older `python -m cluster.bench.skirmish_policies ...` form
+    import sys
+
+    from cluster.cli import main
+
+    sys.argv[1:1] = ["env", "scripted"]  # what the JSON records as the command
+    sys.exit(main(sys.argv[1:]))
