@@ -48,8 +48,8 @@ class EnvConfig:
 
 @dataclass(frozen=True)
 class ReplayConfig:
-    """Episode replay of the value family (seed: 1000 episodes / batch 32 on SMAC, 200 / 4 on
-    the matrix games).
+    """Episode replay of the value family (the dissertation: 1000 episodes / batch 32 on SMAC,
+    200 / 4 on the matrix games).
 
     Attributes:
         capacity: episodes kept (oldest dropped).
@@ -78,8 +78,8 @@ class ReplayConfig:
 
 @dataclass(frozen=True)
 class CyclingConfig:
-    """EM-CAC's semi-online cycling buffer (seed 5.3.4: the last 32 episodes, 4 new per
-    training step). Each episode is sampled at most capacity / run.num_envs times.
+    """EM-CAC's semi-online cycling buffer (the dissertation, 5.3.4: the last 32 episodes, 4
+    new per training step). Each episode is sampled at most capacity / run.num_envs times.
 
     Attributes:
         capacity: episodes held; every policy-gradient step trains on all of them.
@@ -204,6 +204,13 @@ class ClusterConfig:
 
 # The measured layers alone; any other recipe r adds the layer recipes/<algo>.<r>.yaml.
 SHIPPED_RECIPE = "shipped"
+# Older names of recipes, read as the name they have now (so old configs and commands work).
+RECIPE_ALIASES = {"seed": "dissertation"}
+
+
+def recipe_name(recipe: object) -> str:
+    """The current name of `recipe` (an alias in RECIPE_ALIASES gives the name it stands for)."""
+    return RECIPE_ALIASES.get(str(recipe), str(recipe))
 
 
 @dataclass(frozen=True)
@@ -310,9 +317,10 @@ def recipe_file(algo: str, recipe: str) -> Traversable | None:
         for p in (folder.iterdir() if folder.is_dir() else [])
         if p.name.startswith(f"{algo}.") and p.name.endswith(".yaml")
     )
+    aliases = [f"{old} (= {new})" for old, new in RECIPE_ALIASES.items() if new in known]
     raise ConfigError(
         f"recipe {recipe!r} is not a recipe of {algo}; valid recipes: "
-        + ", ".join([SHIPPED_RECIPE, *known])
+        + ", ".join([SHIPPED_RECIPE, *known, *aliases])
     )
 
 
@@ -338,7 +346,7 @@ def load_train_config(
         get_spec(env_id)
     except EnvError as e:
         raise ConfigError(f"env: {e}") from None
-    recipe = str(user.get("recipe", SHIPPED_RECIPE))
+    recipe = recipe_name(user.get("recipe", SHIPPED_RECIPE))
     layers = default_files(algo, env_id)
     extra = recipe_file(algo, recipe)
     data: dict[str, Any] = {}
@@ -393,6 +401,6 @@ def build_train_config(data: dict[str, Any]) -> TrainConfig:
         name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
-    recipe = str(data.get("recipe", SHIPPED_RECIPE))
+    recipe = recipe_name(data.get("recipe", SHIPPED_RECIPE))
     recipe_file(spec.name, recipe)  # an unknown recipe is an error that lists the valid ones
     return TrainConfig(algo_name=spec.name, algo=algo_cfg, recipe=recipe, **built)
