@@ -13,7 +13,7 @@ from typing import Any, Literal
 import torch
 
 from actors.envs.base import EnvError
-from actors.envs.registry import get_spec
+from actors.envs.registry import env_family, get_spec, is_map_file
 from actors.policy import ExplorationConfig
 from cluster.config.schema import (
     ConfigError,
@@ -35,7 +35,8 @@ class EnvConfig:
     """Which environment to train in.
 
     Attributes:
-        id: registered env id, e.g. matrix/four_game (see `credit env list`).
+        id: registered env id, e.g. matrix/four_game (see `credit env list`), or the path
+            of a skirmish map file (ending in .yaml or .yml), which trains as a skirmish map.
         args: keyword arguments of that env's factory (e.g. payoffs for matrix/four_game).
     """
 
@@ -279,9 +280,10 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     present: envs/<family>.<algo family>.yaml (what one algorithm family needs on that env
     family, e.g. the value family's measured settings on SMAC-like maps),
     envs/<family>.<algo>.yaml (what one algorithm needs on that env family, e.g. RDN's critic
-    targets on SMAC-like maps) and envs/<family>/<name>.yaml (what one map needs).
+    targets on SMAC-like maps) and envs/<family>/<name>.yaml (what one built-in map needs;
+    a user's map file, of the skirmish family, has no layer of its own).
     """
-    family, _, name = env_id.partition("/")
+    family, name = env_family(env_id), env_id.partition("/")[2]
     algo_family = get_algo(algo).family
     root = config_root()
     required = [root / "envs" / f"{family}.yaml", root / "algos" / f"{algo}.yaml"]
@@ -294,8 +296,9 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     optional = [
         root / "envs" / f"{family}.{algo_family}.yaml",
         root / "envs" / f"{family}.{algo}.yaml",
-        root / "envs" / family / f"{name}.yaml",
     ]
+    if not is_map_file(env_id):  # a user's map file has no layer of its own
+        optional.append(root / "envs" / family / f"{name}.yaml")
     return required + [p for p in optional if p.is_file()]
 
 
