@@ -1,7 +1,8 @@
-"""Open-loop policies on fixed vs randomised skirmish maps; prints one JSON object.
+"""`credit bench open-loop`: open-loop policies on fixed vs randomised skirmish maps; prints
+one JSON object (results/skirmish/README.md, "Open-loop policies").
 
-    python -m cluster.bench.skirmish_open_loop --maps 3m 2s3z protoss_5_vs_5 terran_5_vs_5 \
-        zerg_5_vs_5 --tune-seeds 0 1 2 --out results/skirmish/open_loop.json
+    credit bench open-loop --maps 3m 2s3z protoss_5_vs_5 terran_5_vs_5 zerg_5_vs_5 \
+        --tune-seeds 0 1 2 --out results/skirmish/open_loop.json
 
 An open-loop policy sees only the time step, as in SMACv2's open-loop experiment: at step t
 every agent prefers the action a[t] of one fixed sequence, then attacking enemy 0, 1, ...,
@@ -20,16 +21,16 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from actors.envs.registry import make_vec_env
+from actors.envs.registry import get_spec, make_vec_env
 from actors.envs.skirmish.scripts import evaluate, focus_fire_policy
+from cluster.bench.common import emit
+from cluster.commands import add_command
+from cluster.errors import UsageError
 
 HELD_OUT_SEED = 1000
 
@@ -138,33 +139,40 @@ def run_map(name: str, args: argparse.Namespace) -> dict:
     }
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def register(sub: argparse._SubParsersAction) -> None:
+    p = add_command(
+        sub,
+        "open-loop",
+        "Tune open-loop action sequences on one seed of each skirmish map and play them on "
+        "held-out seeds, beside the closed-loop focus-fire script; prints JSON, --out also "
+        "writes it.",
+    )
     p.add_argument("--maps", nargs="+", default=["3m", "2s3z", "protoss_5_vs_5"])
     p.add_argument("--tune-seeds", nargs="+", type=int, default=[0, 1, 2])
-    p.add_argument("--candidates", type=int, default=200, help="sequences per round")
-    p.add_argument("--tune-episodes", type=int, default=8, help="episodes of the tuning seed")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of mutations of the best")
+    p.add_argument("--candidates", type=int, default=200, help="sequences per round (200)")
+    p.add_argument("--tune-episodes", type=int, default=8, help="episodes of the tuning seed (8)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of mutations of the best (3)")
     p.add_argument("--episodes", type=int, default=200, help="held-out episodes per sequence")
-    p.add_argument("--out", default=None)
-    args = p.parse_args()
+    p.add_argument("--out", default=None, help="also write the JSON here")
+    p.set_defaults(func=cmd_open_loop)
+
+
+def cmd_open_loop(args: argparse.Namespace) -> int:
+    for name in ("candidates", "tune_episodes", "episodes"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.rounds < 0:
+        raise UsageError(f"--rounds must be >= 0, got {args.rounds}")
+    for m in args.maps:
+        get_spec(f"skirmish/{m}")  # an unknown map stops the run before any map is played
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     maps = [run_map(m, args) for m in args.maps]
-    out = {
-        "benchmark": "skirmish_open_loop",
-        "command": "python " + " ".join(sys.argv),
-        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"hostname": platform.node(), "python": platform.python_version()},
+    figures = {
         "seconds": round(time.time() - t0, 1),
         "held_out_seeds": [HELD_OUT_SEED, HELD_OUT_SEED + args.episodes - 1],
         "maps": maps,
     }
-    text = json.dumps(out, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
-
-
-if __name__ == "__main__":
-    main()
+    emit("open_loop", figures, args.out)
+    return 0
