@@ -64,17 +64,34 @@ def _families() -> list[EnvSpec]:
     return specs
 
 
-def _skirmish_map_spec(name: str) -> EnvSpec:
-    """`skirmish/<name>` for a built-in map (or a generated `bane_z<N>`)."""
+def _fixed_map_spec(env_id: str, where: dict[str, str], description: str) -> EnvSpec:
+    """An env of one skirmish map; `where` is make_skirmish's `map_name` or `map_file`, which
+    env arguments cannot change (skirmish/custom is the env that takes `map_file`)."""
+
+    def options_of(options: dict[str, Any]) -> dict[str, Any]:
+        taken = sorted({"map_file", "map_name"} & set(options))
+        if taken:
+            raise EnvError(
+                f"env {env_id!r} is one fixed map: drop the env argument(s) {taken} "
+                "(skirmish/custom takes map_file; or give the map file as the env)"
+            )
+        return options
 
     def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
-        return make_skirmish(seed, map_name=name, **options)
+        return make_skirmish(seed, **where, **options_of(options))
 
     def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
-        return make_skirmish_vec(num_envs, seed, map_name=name, **options)
+        return make_skirmish_vec(num_envs, seed, **where, **options_of(options))
 
+    return EnvSpec(env_id, make, make_vec, description)
+
+
+def _skirmish_map_spec(name: str) -> EnvSpec:
+    """`skirmish/<name>` for a built-in map (or a generated `bane_z<N>`)."""
     kind = "SMACv2-style randomised scenario" if builtin_map(name).randomised else "SMAC map"
-    return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, {kind} {name}")
+    return _fixed_map_spec(
+        f"skirmish/{name}", {"map_name": name}, f"skirmish simulator, {kind} {name}"
+    )
 
 
 def _skirmish_specs() -> list[EnvSpec]:
@@ -118,21 +135,8 @@ def env_name(env_id: str) -> str:
 def _map_file_spec(path: str) -> EnvSpec:
     """A map file as an env: read (and checked) here, so that a bad file fails before any
     training with an EnvError naming the file and the field."""
-    spec = load_map_file(path)
-
-    def options_of(options: dict[str, Any]) -> dict[str, Any]:
-        taken = sorted({"map_file", "map_name"} & set(options))
-        if taken:
-            raise EnvError(f"env {path!r} is a map file: drop the env argument(s) {taken}")
-        return options
-
-    def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
-        return make_skirmish(seed, map_file=path, **options_of(options))
-
-    def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
-        return make_skirmish_vec(num_envs, seed, map_file=path, **options_of(options))
-
-    return EnvSpec(path, make, make_vec, f"skirmish map file {path} (map {spec.name})")
+    name = load_map_file(path).name
+    return _fixed_map_spec(path, {"map_file": path}, f"skirmish map file {path} (map {name})")
 
 
 REGISTRY: dict[str, EnvSpec] = {spec.id: spec for spec in _families()}

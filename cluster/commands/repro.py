@@ -235,6 +235,18 @@ def _check_algos(algos: list[str]) -> None:
             )
 
 
+def _custom_as_file(envs: list[str], sets: list[str]) -> tuple[list[str], list[str]]:
+    """`skirmish/custom` with `--set env.args.map_file=PATH` is the map file PATH given as an
+    env, so that it is named, logged and charted as one (and the override does not reach the
+    other envs). Returns the envs and the remaining overrides."""
+    key = "env.args.map_file="
+    files = [s.removeprefix(key) for s in sets if s.startswith(key)]
+    if not files or "skirmish/custom" not in envs:
+        return envs, sets
+    rest = [s for s in sets if not s.startswith(key)]
+    return [files[-1] if g == "skirmish/custom" else g for g in envs], rest
+
+
 def _check_env_names(envs: list[str], fan: FanOutConfig) -> None:
     """Each env must name its own plot (a map file by its stem), and on a cluster a map file
     must be given by its absolute path: the pairs run in other working directories."""
@@ -266,6 +278,7 @@ def cmd_curves(
     (which may add to the summary)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
+    envs, sets = _custom_as_file(envs, list(args.set))
     _check_algos(algos)
     if not algos or not envs:
         raise UsageError("--algos and --envs must name at least one algorithm and env")
@@ -273,7 +286,7 @@ def cmd_curves(
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
     _check_env_names(envs, fan)
-    overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
+    overrides = sets + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
     t_max = 0

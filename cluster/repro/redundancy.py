@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from actors.envs.registry import env_name, is_map_file
+from actors.envs.skirmish import example_map_file
 from actors.envs.skirmish.maps import BANE_VARIANT, BANE_VARIANT_MAX, builtin_map, load_map_file
 from actors.envs.skirmish.spec import MapSpec
 from cluster.errors import UsageError
@@ -69,12 +70,14 @@ def zergling_envs(spec: str) -> list[str]:
 
 
 def map_of(env: str) -> MapSpec | None:
-    """The skirmish map of `env` (a built-in, a generated bane_z<N> or a user's map file),
-    or None for an env of another family."""
+    """The skirmish map of `env` (a built-in, a generated bane_z<N>, a user's map file, or
+    skirmish/custom's example map), or None for an env of another family."""
     if is_map_file(env):
         return load_map_file(env)
     family, _, name = env.partition("/")
-    return builtin_map(name) if family == "skirmish" else None
+    if family != "skirmish":
+        return None
+    return load_map_file(example_map_file()) if name == "custom" else builtin_map(name)
 
 
 def zerglings_of(env: str) -> int | None:

@@ -112,11 +112,31 @@ def test_a_bad_map_file_exits_2_naming_the_file_and_the_field(
     assert not (out / "t").exists()
 
 
-def test_a_map_file_takes_no_map_argument(tmp_path, capsys):
+@pytest.mark.parametrize("env", ["my_bane.yaml", "skirmish/3m"])
+def test_a_fixed_map_takes_no_map_argument(tmp_path, capsys, env):
     path = _write(tmp_path, "my_bane.yaml", BANE_7Z)
-    argv = ["train", "--env", path, "--set", "env.args.map_file=x.yaml", "--t-max", "10"]
+    env = path if env.endswith(".yaml") else env
+    argv = ["train", "--env", env, "--set", f"env.args.map_file={path}", "--t-max", "10"]
     assert main([*argv, "--out", str(tmp_path / "t")]) == 2
-    assert "is a map file: drop the env argument(s) ['map_file']" in capsys.readouterr().err
+    assert "is one fixed map: drop the env argument(s) ['map_file']" in capsys.readouterr().err
+
+
+def test_skirmish_custom_with_map_file_is_summarised_as_the_map_file(tmp_path):
+    path = _write(tmp_path, "my_bane.yaml", BANE_7Z)
+    assert zerglings_of("skirmish/custom") == 12  # without map_file: the packaged example
+    (tmp_path / "evals").mkdir()
+    rows = [
+        {"t_env": 100 * k, "won": [0.5, 1.0], "returns": [1.0, 2.0], "wall_s": k} for k in (1, 2)
+    ]
+    log = tmp_path / "evals" / f"{path.lstrip('/').replace('/', '-')}__vdn.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    argv = ["repro", "redundancy", "--envs", "skirmish/custom,skirmish/bane_med", "--algos", "vdn"]
+    argv += ["--set", f"env.args.map_file={path}", "--summarise-only", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary[path]["vdn"]["mean_win_rate_last10"] == 0.75
+    assert summary["redundancy"]["zerglings"] == {path: 7}  # bane_med has no log here
+    assert (tmp_path / "redundancy_my_bane.png").exists()
 
 
 def test_on_a_cluster_a_map_file_needs_its_absolute_path(tmp_path, capsys, monkeypatch):
