@@ -225,7 +225,7 @@ def _plot_final(final: dict, enemy: str | None, path: Path) -> None:
                     yerr=[med - lo, hi - med],
                     capsize=3,
                     color=color,
-                    marker=marker,
+                    marker="o" if i == 0 else marker,
                     ls="-" if i == 0 else "none",
                     mfc=None if i == 0 else "none",
                     label=algo + ("" if i == 0 else kind),
