@@ -105,7 +105,12 @@ def generated(env: str) -> bool:
 def ordered(envs: list[str]) -> list[str]:
     """Most allied zerglings first (the dissertation's left-to-right order), maps without a
     fixed number last; ties keep their order."""
-    return sorted(envs, key=lambda g: -(-1 if zerglings_of(g) is None else zerglings_of(g)))
+
+    def rank(env: str) -> int:
+        n = zerglings_of(env)
+        return -1 if n is None else n
+
+    return sorted(envs, key=lambda g: -rank(g))
 
 
 def curve_stats(c: Curve) -> dict:
