@@ -156,6 +156,7 @@ def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict
     envs = ordered([g for g in envs if any(c.env == g for c in curves)])
     summary["redundancy"] = {
         "zerglings": {g: zerglings_of(g) for g in envs},
+        "names": {g: env_name(g) for g in envs},  # of the plots: a map file's stem
         "curves": {g: {c.algo: curve_stats(c) for c in curves if c.env == g} for g in envs},
         "final": final_stats(curves, envs),
         "last_evaluations": LAST,

@@ -170,6 +170,7 @@ def test_tiny_redundancy_run_on_a_map_file(tmp_path):
     assert 0.0 <= cell["median_win_rate_last10"] <= 1.0
     red = summary["redundancy"]
     assert red["zerglings"] == {path: 7, "skirmish/bane_no_z": 0}
+    assert red["names"] == {path: "my_bane", "skirmish/bane_no_z": "bane_no_z"}
     assert red["final"]["vdn"]["zerglings"] == [7, 0]
     for name in ("my_bane", "bane_no_z", "median", "variance", "p75", "p25", "final"):
         assert (out / f"redundancy_{name}.png").stat().st_size > 0
