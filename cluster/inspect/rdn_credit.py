@@ -7,7 +7,7 @@ line per evaluation, printed and appended to --out (results/smac/README.md, "Why
 dissertation's recipe collapses").
 
     credit inspect rdn-credit --env skirmish/3m --seeds 3 --t-max 60000 \\
-        --out credit.jsonl [--set algo.lrp_rule=eps ...]
+        --out credit.jsonl [--set algo.td_lambda=0.8 ...]
 """
 
 from __future__ import annotations
