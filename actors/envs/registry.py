@@ -135,7 +135,10 @@ def env_name(env_id: str) -> str:
 def _map_file_spec(path: str) -> EnvSpec:
     """A map file as an env: read (and checked) here, so that a bad file fails before any
     training with an EnvError naming the file and the field."""
-    name = load_map_file(path).name
+    try:
+        name = load_map_file(path).name
+    except (OSError, UnicodeDecodeError) as e:
+        raise EnvError(f"map file {path!r} cannot be read: {e}") from None
     return _fixed_map_spec(path, {"map_file": path}, f"skirmish map file {path} (map {name})")
 
 

@@ -93,6 +93,7 @@ BAD = [
     ("count.yaml", BANE_7Z.replace("count: 7", "count: -7"), "count: must be an int >= 0"),
     ("limit.yaml", BANE_7Z.replace("episode_limit: 200", "episode_limit: 0"), "'episode_limit'"),
     ("broken.yaml", "allies: [", "not valid YAML"),
+    ("binary.yaml", "", "cannot be read"),
 ]
 
 
@@ -101,6 +102,8 @@ def test_a_bad_map_file_exits_2_naming_the_file_and_the_field(
     tmp_path, capsys, name, text, message
 ):
     path = str(tmp_path / name) if text is None else _write(tmp_path, name, text)
+    if name == "binary.yaml":
+        Path(path).write_bytes(b"\xff\xfe\x00 not text")
     out = tmp_path / "out"
     assert main(["repro", "redundancy", "--envs", path, "--algos", "vdn", "--out", str(out)]) == 2
     err = capsys.readouterr().err
