@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, fields
 from typing import Any
+
+import numpy as np
 
 from actors.envs.base import EnvError
 
@@ -108,10 +111,11 @@ def make_config(**overrides: Any) -> SkirmishConfig:
     if unknown:
         raise EnvError(f"unknown skirmish options {unknown}; valid options: {valid}")
     defaults = SkirmishConfig()
+    kinds = {bool: (bool, np.bool_), int: numbers.Integral, float: numbers.Real}
     for key, value in overrides.items():
         want = type(getattr(defaults, key))
-        ok = isinstance(value, want) or (want is float and isinstance(value, int))
-        if not ok or (want is not bool and isinstance(value, bool)):
+        is_bool = isinstance(value, bool | np.bool_)
+        if not isinstance(value, kinds.get(want, want)) or (want is not bool and is_bool):
             raise EnvError(f"skirmish option {key}: expected {want.__name__}, got {value!r}")
     cfg = SkirmishConfig(**overrides)
     cfg.validate()
