@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
+from actors.envs.registry import is_map_file
 from actors.envs.skirmish import make_skirmish_vec
 from actors.envs.skirmish.config import make_config
 from actors.envs.skirmish.maps import builtin_map, load_map_file
@@ -46,19 +47,20 @@ def parse_sweep(text: str | None) -> tuple[str | None, list]:
 
 
 def _spec(name: str):
-    """A built-in map by name, or a map file (a name ending in .yaml)."""
-    return load_map_file(name) if name.endswith(".yaml") else builtin_map(name)
+    """A built-in map by name, or a map file (a path ending in .yaml or .yml)."""
+    return load_map_file(name) if is_map_file(name) else builtin_map(name)
 
 
-def check_inputs(maps: list[str], policies: list[str] | None, episodes: int, seeds: list[int]):
+def check_inputs(maps: list[str], policies: list[str] | None, episodes: int, seeds: list[int],
+                 num_envs: int) -> None:  # fmt: skip
     """Name the first bad map, policy or count before anything runs."""
     for m in maps:
         _spec(m)  # EnvError naming the map (or file) and what is valid
     for p in policies or []:
         if p not in POLICIES:
             raise UsageError(f"unknown policy {p!r}; valid policies: {', '.join(POLICIES)}")
-    if episodes < 1 or not seeds:
-        raise UsageError("need --episodes >= 1 and at least one seed")
+    if episodes < 1 or num_envs < 1 or not seeds:
+        raise UsageError("need --episodes >= 1, --num-envs >= 1 and at least one seed")
 
 
 def run_case(map_name: str, policy: str, episodes: int, seeds: list[int], options: dict,
@@ -66,7 +68,7 @@ def run_case(map_name: str, policy: str, episodes: int, seeds: list[int], option
     """Evaluate one (map, policy) pair under `options` (SkirmishConfig fields) on each seed."""
     per_seed = []
     for s in seeds:
-        where = {"map_file": map_name} if map_name.endswith(".yaml") else {"map_name": map_name}
+        where = {"map_file": map_name} if is_map_file(map_name) else {"map_name": map_name}
         venv = make_skirmish_vec(min(episodes, num_envs), seed=1000 * s, **where, **options)
         per_seed.append({"seed": s, **evaluate(venv, POLICIES[policy], episodes, seed=s)})
     keys = ("win_rate", "timeout_rate", "mean_return", "mean_length")
@@ -80,7 +82,7 @@ def run_case(map_name: str, policy: str, episodes: int, seeds: list[int], option
 def ladder(maps: list[str], policies: list[str] | None, episodes: int, seeds: list[int],
            sets: list[str], sweep: str | None, num_envs: int = 100) -> list[dict]:  # fmt: skip
     """All rows: for each sweep value, each map, each policy (or the map's default trio)."""
-    check_inputs(maps, policies, episodes, seeds)
+    check_inputs(maps, policies, episodes, seeds, num_envs)
     base = parse_overrides(sets)
     key, values = parse_sweep(sweep)
     settings = [dict(base) if key is None else {**base, key: v} for v in values]

@@ -56,8 +56,8 @@ def register_scripted(env_sub: argparse._SubParsersAction) -> None:
         " (--out also writes it); --set / --sweep change simulator options.",
     )
     sc.add_argument("--maps", nargs="+", default=BANE_MAPS + SANITY_MAPS, metavar="MAP",
-                    help="skirmish map names, e.g. bane_vs_bane bane_z5, or map files (*.yaml) "
-                    "(default: the four Table 5.1 maps and 3m, 8m, 2s3z)")  # fmt: skip
+                    help="skirmish map names (e.g. bane_vs_bane bane_z5) or map files (.yaml, "
+                    ".yml); default: the four Table 5.1 maps and 3m, 8m, 2s3z")  # fmt: skip
     sc.add_argument("--policy", nargs="+", default=None, metavar="POLICY",
                     help=f"one or more of: {', '.join(POLICIES)} (default per map: bane_charge"
                     " or focus_fire, nearest, random)")  # fmt: skip

@@ -67,6 +67,7 @@ def test_sweep_and_set_reach_the_simulator(capsys):
         (["--sweep", "bane_dodge"], "KEY=V1,V2"),
         (["--sweep", "bane_dodge=0.5,oops"], "bane_dodge"),
         (["--episodes", "0"], "--episodes"),
+        (["--num-envs", "0"], "--num-envs"),
     ],
 )
 def test_bad_input_is_named_and_exits_2(capsys, argv, named):
@@ -76,7 +77,7 @@ def test_bad_input_is_named_and_exits_2(capsys, argv, named):
 
 
 def test_a_map_file_plays_like_a_built_in_map(capsys, tmp_path):
-    path = tmp_path / "blob_3m.yaml"
+    path = tmp_path / "blob_3m.yml"
     path.write_text(
         "episode_limit: 60\nformation: blob\n"
         "allies: [{type: marine, count: 3, at: [9, 16]}]\n"
