@@ -101,11 +101,11 @@ def obs_l1(obs: torch.Tensor) -> torch.Tensor:
         return hit[2]
     with torch.no_grad():
         norms = obs.abs().sum(-1)  # 10x cheaper than linalg.vector_norm(obs, 1, -1) on CPU
-    _remember_l1(obs, norms)
+    remember_l1(obs, norms)
     return norms
 
 
-def _remember_l1(obs: torch.Tensor, norms: torch.Tensor) -> None:
+def remember_l1(obs: torch.Tensor, norms: torch.Tensor) -> None:
     """Make `obs_l1(obs)` return `norms` while obs is alive and unchanged."""
     key = id(obs)
     _L1[key] = (weakref.ref(obs, lambda _: _L1.pop(key, None)), obs._version, norms)

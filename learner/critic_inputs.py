@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from learner.batch import TensorBatch, _remember_l1, nonzero_obs, obs_l1
+from learner.batch import TensorBatch, remember_l1, nonzero_obs, obs_l1
 from learner.critic_layer import block_preactivation, encoder_preactivation
 from learner.networks import AgentBlockLinear, EnsembleLinear
 from learner.rdn_reference import critic_inputs, obs_windows
@@ -244,7 +244,7 @@ class RealSteps:
 
     def hist(self, shift: int = 0) -> torch.Tensor:
         obs = self.take(self._obs, shift)
-        _remember_l1(obs, self.take(obs_l1(self._obs), shift))  # the agents' inputs had them
+        remember_l1(obs, self.take(obs_l1(self._obs), shift))  # the agents' inputs had them
         return obs_history(obs, 1)
 
     def put(self, v: torch.Tensor) -> torch.Tensor:

@@ -159,7 +159,7 @@ def _moved_values_encoder(
     a = keep.shape[-1]
     enc, second = critic.layers[0], critic.layers[1]
     h1, h2 = enc.hidden, second.out_features
-    z1, z2 = zs[0].view(e, m, n, h1), zs[1]  # [E, M, N, H1], [E, M, H2]
+    z1, z2 = zs[0].reshape(e, m * n, h1), zs[1]  # row r*N + i: agent i's units; [E, M, H2]
     w_act = enc.block_weight[:, offset : offset + a]  # [E, A, H1]
     w2 = second.weight.view(e, n, h1, h2)
     out = q.view(e, m, 1, 1).expand(e, m, n, a).clone()
@@ -168,8 +168,10 @@ def _moved_values_encoder(
         agent, row, act = todo[k].permute(1, 0, 2).nonzero().unbind(1)  # agent-major
         if agent.numel() == 0:
             continue
-        z1_i = z1[k, row, agent]  # [R, H1]
-        moved = (z1_i - w_act[k, actions[k, row, agent]] + w_act[k, act]).relu_()
+        unit = row * n + agent
+        z1_i = z1[k].index_select(0, unit)  # [R, H1]
+        taken = w_act[k].index_select(0, actions[k].reshape(-1).index_select(0, unit))
+        moved = z1_i.sub(taken).add_(w_act[k].index_select(0, act)).relu_()
         moved.sub_(z1_i.relu_())  # the change of relu(z1_i)
         z = z2[k].index_select(0, row)  # [R, H2], added to in place
         lo = 0

@@ -132,7 +132,8 @@ def counterfactual_targets(
         for i in range(n):
             for act in range(a):
                 moved = x.view(e, m, n, -1).clone()
-                moved[:, :, i, offset : offset + a] = F.one_hot(torch.tensor(act), a).float()
+                moved[:, :, i, offset : offset + a] = 0.0
+                moved[:, :, i, offset + act] = 1.0
                 out[:, :, i, act] = critic(moved.view_as(x)).squeeze(-1) - q + shares[:, :, i]
     return out
 
