@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from learner.batch import TensorBatch, remember_l1, nonzero_obs, obs_l1
+from learner.batch import TensorBatch, nonzero_obs, obs_l1, remember_l1
 from learner.critic_layer import block_preactivation, encoder_preactivation
 from learner.networks import AgentBlockLinear, EnsembleLinear
 from learner.rdn_reference import critic_inputs, obs_windows

@@ -154,7 +154,12 @@ def _moved_values_encoder(
     units, by the shared rows W_a - W_u; in the second layer's pre-activation
     z2 = b2 + sum_j relu(z1_j) @ W2_j (W2_j: agent j's [H1, H2] slice) only agent i's term
     changes, so the moved pre-activation is z2 + (relu(z1_i + W_a - W_u) - relu(z1_i)) @ W2_i:
-    one H1 x H2 product per kept variant (rows grouped by agent), then the layers above."""
+    one H1 x H2 product per kept variant (rows grouped by agent), then the layers above.
+
+    z1_i - W_u + W_a is three row look-ups (index_select): the same bits as 828260c's signed
+    F.embedding_bag of the three rows, and 13% slower on this function (9.7 against 8.6 ms on
+    the shipped skirmish/3m config's 32-episode batch, 8,782 variants, one process, load
+    average 4.7 on 2 shared cores), about 2% of an update: the plain form is kept."""
     e, m, n = actions.shape
     a = keep.shape[-1]
     enc, second = critic.layers[0], critic.layers[1]
