@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+from torch.nn import functional as F
 
 from learner.critic_inputs import AgentBlocks
 from learner.critic_layer import block_dot, block_preactivation, project_rows
@@ -156,10 +157,11 @@ def _moved_values_encoder(
     changes, so the moved pre-activation is z2 + (relu(z1_i + W_a - W_u) - relu(z1_i)) @ W2_i:
     one H1 x H2 product per kept variant (rows grouped by agent), then the layers above.
 
-    z1_i - W_u + W_a is three row look-ups (index_select): the same bits as 828260c's signed
-    F.embedding_bag of the three rows, and 13% slower on this function (9.7 against 8.6 ms on
-    the shipped skirmish/3m config's 32-episode batch, 8,782 variants, one process, load
-    average 4.7 on 2 shared cores), about 2% of an update: the plain form is kept."""
+    z1_i - W_u + W_a is one signed F.embedding_bag of three rows of a table of z1's and the
+    action rows: the plain form, three index_select and two passes, gave the same bits and
+    made the agents' targets 26% slower (5.7 against 4.5 ms; about 4% of an update) on the
+    shipped skirmish/3m config's 32-episode batch (one process, both alternately, 100 calls
+    each, load average 3.2 on 2 shared cores)."""
     e, m, n = actions.shape
     a = keep.shape[-1]
     enc, second = critic.layers[0], critic.layers[1]
@@ -173,11 +175,13 @@ def _moved_values_encoder(
         agent, row, act = todo[k].permute(1, 0, 2).nonzero().unbind(1)  # agent-major
         if agent.numel() == 0:
             continue
-        unit = row * n + agent
-        z1_i = z1[k].index_select(0, unit)  # [R, H1]
-        taken = w_act[k].index_select(0, actions[k].reshape(-1).index_select(0, unit))
-        moved = z1_i.sub(taken).add_(w_act[k].index_select(0, act)).relu_()
-        moved.sub_(z1_i.relu_())  # the change of relu(z1_i)
+        unit = row * n + agent  # agent i's units at that row: row `unit` of z1[k]
+        taken = actions[k].reshape(-1).index_select(0, unit)
+        table = torch.cat([z1[k], w_act[k]])  # z1's rows, then the action rows
+        rows = torch.stack([unit, m * n + taken, m * n + act], 1)  # z1_i - W_u + W_a
+        signs = table.new_tensor([1.0, -1.0, 1.0]).expand(rows.shape[0], 3)
+        moved = F.embedding_bag(rows, table, mode="sum", per_sample_weights=signs).relu_()
+        moved.sub_(table.index_select(0, unit).relu_())  # the change of relu(z1_i)
         z = z2[k].index_select(0, row)  # [R, H2], added to in place
         lo = 0
         for i, count in enumerate(torch.bincount(agent, minlength=n).tolist()):
