@@ -23,6 +23,7 @@ from cluster.config.schema import (
     read_yaml,
     to_dict,
 )
+from learner.rdn import drop_retired_keys
 from learner.registry import get_algo
 
 log = logging.getLogger(__name__)
@@ -365,11 +366,18 @@ def load_train_config(
 def moved_keys(data: dict[str, Any]) -> dict[str, Any]:
     """`data` with keys that moved read into their new place, so that the config.yaml of an
     older run still resumes: cluster.max_policy_lag (cluster mode only, before the one loop)
-    is run.max_policy_lag (both modes).
+    is run.max_policy_lag (both modes); RDN's retired keys are dropped where they hold what RDN
+    still computes (`learner.rdn.drop_retired_keys`).
 
     Raises:
         ConfigError: both names given, with different values.
     """
+    algo = data.get("algo")
+    if data.get("algo_name") == "rdn" and isinstance(algo, dict):
+        try:
+            data = {**data, "algo": drop_retired_keys(algo)}
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     cluster = data.get("cluster")
     if not isinstance(cluster, dict) or "max_policy_lag" not in cluster:
         return data

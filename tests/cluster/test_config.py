@@ -31,7 +31,7 @@ def test_overrides_win_and_are_typed():
         (["run.t_max=many"], "run.t_max: expected an integer, got 'many'"),
         (["algo.lr=-1"], "algo: lr must be > 0"),
         (["replay.batch_size=500"], "batch_size=500 exceeds capacity=200"),
-        (["algo.lrp_rule=magic"], "algo.lrp_rule: 'magic' is not one of"),
+        (["algo.agent_targets=magic"], "algo.agent_targets: 'magic' is not one of"),
         (["trainer.x=1"], "unknown config section 'trainer'"),
         (["run.seed"], "--set expects key=value"),
         (["exploration.epsilon_finish=2"], "epsilon_finish must be in [0, 1]"),
@@ -102,7 +102,6 @@ SEED_RDN = {
     "agent_lr_scale": 1.0,
     "obs_window": 4,
     "critic_agent_encoder": 0,
-    "split_actions": "taken",
 }
 
 
