@@ -1,4 +1,4 @@
-"""Checking one request before the server acts on it (DESIGN.md §4).
+"""Checking one request before the server acts on it (docs/design.md, "Wire protocol").
 
 Every check here runs before anything is logged, stored or sampled, and a refused request
 raises `RequestError` whose message names the offending field. The server only calls these

@@ -1,4 +1,4 @@
-"""The buffer service: an asyncio TCP server of whole episodes (DESIGN.md §4).
+"""The buffer service: an asyncio TCP server of whole episodes (docs/design.md, "Wire protocol").
 
 One event loop owns all state, so request handling needs no locks. An insert's log record is
 written and its episodes applied on the loop; its reply waits for an fsync that runs in a

@@ -12,6 +12,7 @@ from cluster.bench import codec as codec_bench
 from cluster.bench import env as env_bench
 from cluster.bench import learn as learn_bench
 from cluster.bench import matrix as matrix_bench
+from cluster.bench import open_loop as open_loop_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
 from cluster.bench import update as update_bench
@@ -25,6 +26,7 @@ BENCHES: list = [
     scaling_bench,
     learn_bench,
     update_bench,
+    open_loop_bench,
 ]
 
 

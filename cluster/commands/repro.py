@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
+from actors.envs.registry import env_name, is_map_file
 from cluster.commands import add_command
 from cluster.config.train import load_train_config
 from cluster.core import write_json
@@ -201,7 +202,9 @@ def _register_curves(
 ) -> argparse.ArgumentParser:
     m = add_command(rsub, name, help_text)
     m.add_argument(
-        "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
+        "--envs",
+        default=",".join(experiment.ENVS),
+        help="comma-separated skirmish/smac env ids or paths of skirmish map files (.yaml)",
     )
     m.add_argument("--algos", default=",".join(experiment.ALGOS), help="comma-separated algorithms")
     m.add_argument(
@@ -248,6 +251,37 @@ def _check_algos(algos: list[str]) -> None:
             )
 
 
+def _custom_as_file(envs: list[str], sets: list[str]) -> tuple[list[str], list[str]]:
+    """`skirmish/custom` with `--set env.args.map_file=PATH` is the map file PATH given as an
+    env, so that it is named, logged and charted as one (and the override does not reach the
+    other envs). Returns the envs and the remaining overrides."""
+    key = "env.args.map_file="
+    files = [s.removeprefix(key) for s in sets if s.startswith(key)]
+    if not files or "skirmish/custom" not in envs:
+        return envs, sets
+    rest = [s for s in sets if not s.startswith(key)]
+    return [files[-1] if g == "skirmish/custom" else g for g in envs], rest
+
+
+def _check_env_names(envs: list[str], fan: FanOutConfig) -> None:
+    """Each env must name its own plot (a map file by its stem), and on a cluster a map file
+    must be given by its absolute path: the pairs run in other working directories."""
+    seen: dict[str, str] = {}
+    for g in envs:
+        if env_name(g) in seen and seen[env_name(g)] != g:
+            raise UsageError(
+                f"--envs: {seen[env_name(g)]!r} and {g!r} would share the plot name "
+                f"{env_name(g)!r}; rename one map file"
+            )
+        seen[env_name(g)] = g
+        if fan.address and is_map_file(g) and not Path(g).is_absolute():
+            raise UsageError(
+                f"--envs {g!r}: with --address give a map file by its absolute path (the "
+                "pairs run in other working directories; on other nodes the file must be at "
+                "that path too)"
+            )
+
+
 def cmd_curves(
     args: argparse.Namespace,
     name: str,
@@ -260,13 +294,15 @@ def cmd_curves(
     (which may add to the summary)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
+    envs, sets = _custom_as_file(envs, list(args.set))
     _check_algos(algos)
     if not algos or not envs:
         raise UsageError("--algos and --envs must name at least one algorithm and env")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
-    overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
+    _check_env_names(envs, fan)
+    overrides = sets + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
     t_max = 0
@@ -292,7 +328,7 @@ def cmd_curves(
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
     for g in envs:
-        plots.append(f"{experiment.PLOT_PREFIX}_{g.split('/', 1)[1]}.png")
+        plots.append(f"{experiment.PLOT_PREFIX}_{env_name(g)}.png")
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
     if figures is not None:
         plots += figures(curves, envs, out, summary)

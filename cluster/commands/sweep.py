@@ -11,6 +11,7 @@ from pathlib import Path
 
 import yaml
 
+from actors.envs.registry import env_family
 from cluster.commands import add_command
 from cluster.commands.train import add_run_arguments
 from cluster.config.train import load_train_config
@@ -160,7 +161,7 @@ def _plan(args: argparse.Namespace, tune_sweep):
     )
     for p in points:  # every configuration checked before any trial starts
         cfg = load_train_config(args.algo, args.env, args.config, sweep.argv_sets(p))
-    wins = cfg.env.id.split("/", 1)[0] != "matrix"
+    wins = env_family(cfg.env.id) != "matrix"
     return sweep, args.metric or ("test_won_mean" if wins else "test_return_mean")
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import yaml
 
+from actors.envs.registry import env_name, is_map_file
 from cluster.commands import add_command
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig, default_files, load_train_config, recipe_file
@@ -30,7 +31,11 @@ log = logging.getLogger(__name__)
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     """Arguments shared by every command that builds a TrainConfig."""
     p.add_argument("--algo", help=f"algorithm, one of: {', '.join(sorted(ALGOS))} (default rdn)")
-    p.add_argument("--env", help="env id, see `credit env list` (default matrix/four_game)")
+    p.add_argument(
+        "--env",
+        help="env id, see `credit env list` (default matrix/four_game), or the path of a "
+        "skirmish map file (.yaml)",
+    )
     p.add_argument(
         "--config",
         action="append",
@@ -101,7 +106,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         )
     else:
         cfg = load_train_config(args.algo, args.env, args.config, _overrides(args))
-        name = f"{cfg.algo_name}_{cfg.env.id.replace('/', '-')}_s{cfg.run.seed}"
+        env = env_name(cfg.env.id) if is_map_file(cfg.env.id) else cfg.env.id.replace("/", "-")
+        name = f"{cfg.algo_name}_{env}_s{cfg.run.seed}"
         out = Path(args.out or Path("runs") / name)
     if args.print_config:
         print(config_text(cfg, args.config), end="")

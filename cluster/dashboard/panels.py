@@ -2,7 +2,7 @@
 
 Each `Query` is both a PromQL expression (for Prometheus and Grafana) and a recipe the
 exporter-scraping mode evaluates itself (`cluster.dashboard.local`), so the two modes and the
-Grafana JSON show the same thing. Metric names come from DESIGN.md §5.
+Grafana JSON show the same thing. Metric names come from docs/design.md, "Metrics".
 """
 
 from __future__ import annotations

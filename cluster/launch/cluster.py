@@ -88,10 +88,6 @@ class ClusterTrainer:
         return self.acting.restarts
 
     @property
-    def dropped_stale(self) -> int:
-        return self.stats.dropped_stale
-
-    @property
     def stop_requested(self) -> bool:
         return self.loop.stop_requested
 

@@ -1,4 +1,4 @@
-"""Prometheus metrics of the actors and the learner (DESIGN.md §5), defined once, here.
+"""Prometheus metrics of the actors and the learner (docs/design.md, "Metrics"), defined once, here.
 
 Every component owns its own `CollectorRegistry`, so several exporters (one per actor, one for
 the learner) can live in one process, as they do in `--mode local` and in tests. Everything is
@@ -36,7 +36,7 @@ from prometheus_client import (
 
 log = logging.getLogger(__name__)
 
-#: Loopback only unless a caller asks otherwise (DESIGN.md §4: bind 127.0.0.1 by default).
+#: Loopback only unless a caller asks otherwise (docs/design.md: bind 127.0.0.1 by default).
 
 #: Seconds per learner update: from a millisecond (tiny nets) to a minute (huge batches).
 # fmt: off

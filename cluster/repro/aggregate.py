@@ -78,10 +78,10 @@ def runs_by_tasks(per_env: dict[str, dict[str, list[float]]], algo: str, envs: l
 def max_return(env_id: str, env_args: dict) -> float:
     """The return of a perfect episode: a matrix game's optimum; on skirmish and SMAC maps
     (rewards scaled as SMAC does) `reward_scale_rate`."""
-    family = env_id.split("/", 1)[0]
-    if family == "matrix":
-        from actors.envs.registry import make_env
+    from actors.envs.registry import env_family, make_env
 
+    family = env_family(env_id)  # a map file's is "skirmish"
+    if family == "matrix":
         return float(make_env(env_id, seed=0, **env_args).optimal_return)
     if family in ("skirmish", "smac"):
         from actors.envs.skirmish.config import SkirmishConfig

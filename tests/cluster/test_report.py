@@ -59,6 +59,7 @@ def test_max_return_per_family():
     assert aggregate.max_return("matrix/two_step", {}) == 8.0
     assert aggregate.max_return("skirmish/3m", {}) == 20.0
     assert aggregate.max_return("skirmish/3m", {"reward_scale_rate": 10}) == 10.0
+    assert aggregate.max_return("maps/my_bane.yaml", {}) == 20.0  # a map file is skirmish
     with pytest.raises(ValueError, match="reward_scale=false"):
         aggregate.max_return("skirmish/3m", {"reward_scale": False})
 
