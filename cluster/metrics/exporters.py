@@ -139,7 +139,7 @@ class LearnerMetrics:
         registry: registry to register in; a fresh one when None.
         algo, family: the run's algorithm and its family ("value" or "pg"), exposed as
             credit_run_info{algo, family} = 1 so that a dashboard shows the panels that
-            algorithm feeds (none when not given).
+            algorithm feeds (not exposed without algo).
     """
 
     def __init__(
