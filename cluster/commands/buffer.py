@@ -91,7 +91,38 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--repair",
         action="store_true",
         help="start from what a damaged --snapshot-dir still holds, discarding (and naming) "
-        "what cannot be read, instead of refusing to start",
+        "what cannot be read and accepting acknowledged episodes found missing (a log cut "
+        "short or deleted), instead of refusing to start",
+    )
+    s.add_argument(
+        "--snapshot-every-mb",
+        type=float,
+        default=BufferConfig.snapshot_every_bytes / 2**20,
+        help="also snapshot once the log holds this many MiB (0 = no byte trigger)",
+    )
+    s.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=BufferConfig.idle_timeout_s,
+        help="close an authenticated connection idle this long, seconds (clients reconnect)",
+    )
+    s.add_argument(
+        "--max-connections-per-client",
+        type=int,
+        default=BufferConfig.max_connections_per_client,
+        help="authenticated connections one client id may hold",
+    )
+    s.add_argument(
+        "--max-inflight-mb",
+        type=float,
+        default=BufferConfig.max_inflight_bytes / 2**20,
+        help="MiB of large requests and sample replies in flight over all connections",
+    )
+    s.add_argument(
+        "--max-inflight-per-client-mb",
+        type=float,
+        default=BufferConfig.max_inflight_bytes_per_client / 2**20,
+        help="the share of --max-inflight-mb one client may hold",
     )
     s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
     s.set_defaults(func=cmd_serve)
@@ -156,6 +187,11 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         snapshot_dir=args.snapshot_dir,
         fsync=not args.no_fsync,
         snapshot_every_inserts=args.snapshot_every,
+        snapshot_every_bytes=int(args.snapshot_every_mb * 2**20),
+        idle_timeout_s=args.idle_timeout,
+        max_connections_per_client=args.max_connections_per_client,
+        max_inflight_bytes=int(args.max_inflight_mb * 2**20),
+        max_inflight_bytes_per_client=int(args.max_inflight_per_client_mb * 2**20),
         sample_timeout_s=args.sample_timeout,
         insert_timeout_s=args.insert_timeout,
         max_sample_episodes=args.max_sample,
@@ -169,7 +205,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from buffer_service.runner import run
-    from buffer_service.storage import StorageError
+    from buffer_service.storage import StorageError, WriteError
 
     try:
         cfg = build_config(args)
@@ -177,10 +213,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
         log.error("credit buffer serve: %s", e)
         return 2
     try:
-        run(cfg, port_file=args.port_file)
+        failed = run(cfg, port_file=args.port_file)
     except StorageError as e:
         log.error("credit buffer serve: refusing to start: %s", e)
         return 2
+    except WriteError as e:
+        log.error("credit buffer serve: cannot start: %s: %s", e.code, e)
+        return 2
+    except OSError as e:  # e.g. the port is taken, or the folder cannot be read
+        log.error("credit buffer serve: cannot start: %s", e)
+        return 2
+    if failed:
+        log.error("credit buffer serve: stopped without its final snapshot: %s", failed)
+        return 1
     return 0
 
 
