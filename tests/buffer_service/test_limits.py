@@ -5,6 +5,7 @@ transparently), and ``v`` must be the integer protocol version."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import threading
@@ -129,9 +130,7 @@ def test_one_client_cannot_take_every_connection(serve):
             raw.close()
 
 
-def test_idle_authenticated_connections_are_closed_and_clients_reconnect_quietly(
-    serve, caplog
-):
+def test_idle_authenticated_connections_are_closed_and_clients_reconnect_quietly(serve, caplog):
     srv, c = serve(idle_timeout_s=0.4)
     raw = Raw(srv.port, hello())
     try:
@@ -148,7 +147,7 @@ def test_idle_authenticated_connections_are_closed_and_clients_reconnect_quietly
 
 
 def test_a_client_whose_connection_the_server_closed_reconnects_without_a_retry(serve, caplog):
-    srv, c = serve(idle_timeout_s=0.4)
+    _, c = serve(idle_timeout_s=0.4)
     c.stats()
     c.idle_timeout_s = float("inf")  # only the closed socket tells it
     time.sleep(0.8)
@@ -166,10 +165,8 @@ def test_authenticated_clients_get_in_within_1s_under_unauthenticated_churn(serv
 
     def churn() -> None:
         while not stop.is_set():
-            try:
+            with contextlib.suppress(OSError):
                 opened.append(socket.create_connection(("127.0.0.1", srv.port), timeout=5))
-            except OSError:
-                pass
             if len(opened) > 300:  # keep the newest 300
                 opened.pop(0).close()
 
