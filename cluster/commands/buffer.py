@@ -101,6 +101,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also snapshot once the log holds this many MiB (0 = no byte trigger)",
     )
     s.add_argument(
+        "--read-timeout",
+        type=float,
+        default=BufferConfig.read_timeout_s,
+        help="a started request or reply must be transferred within this, seconds; a client "
+        "that does not take its reply is cut off",
+    )
+    s.add_argument(
         "--idle-timeout",
         type=float,
         default=BufferConfig.idle_timeout_s,
@@ -188,6 +195,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         fsync=not args.no_fsync,
         snapshot_every_inserts=args.snapshot_every,
         snapshot_every_bytes=int(args.snapshot_every_mb * 2**20),
+        read_timeout_s=args.read_timeout,
         idle_timeout_s=args.idle_timeout,
         max_connections_per_client=args.max_connections_per_client,
         max_inflight_bytes=int(args.max_inflight_mb * 2**20),

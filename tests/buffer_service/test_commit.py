@@ -12,7 +12,7 @@ import tracemalloc
 
 import pytest
 
-from buffer_service import codec, commit, records
+from buffer_service import codec, records
 from buffer_service.config import BufferConfig
 from buffer_service.episode import EpisodeSchema
 from buffer_service.state import BufferState
@@ -84,6 +84,8 @@ def test_with_fsync_off_every_acknowledged_insert_is_marked(tmp_path):
 
 
 def test_a_damaged_commit_slot_falls_back_to_the_other_and_two_are_refused(tmp_path):
+    from buffer_service import commit
+
     ten_inserts(tmp_path)
     path = tmp_path / commit.NAME
     f = commit.CommitFile(str(tmp_path))
@@ -103,7 +105,7 @@ def test_a_damaged_commit_slot_falls_back_to_the_other_and_two_are_refused(tmp_p
 
 def test_a_missing_commit_file_is_refused_when_the_logs_were_written_with_one(tmp_path):
     ten_inserts(tmp_path)
-    os.remove(tmp_path / commit.NAME)
+    os.remove(tmp_path / "commit.bin")
     with pytest.raises(StorageError, match=r"commit\.bin is missing"):
         boot(tmp_path)
 

@@ -11,7 +11,6 @@ import os
 import pytest
 
 from buffer_service.client import BufferServiceError
-from buffer_service.storage import WriteError
 from buffer_service.verify import verify
 from tests.buffer_service.conftest import make_episode
 from tests.buffer_service.test_recovery import boot, held
@@ -76,6 +75,8 @@ def test_a_full_disk_refuses_inserts_by_name_and_loses_nothing(tmp_path, monkeyp
 
 
 def test_shutdown_and_restart_on_a_full_disk_say_so(tmp_path, monkeypatch):
+    from buffer_service.storage import WriteError
+
     disk = FullDisk(tmp_path, monkeypatch)
     srv, c = boot(tmp_path)
     c.insert([make_episode(0, 0)])
