@@ -147,7 +147,7 @@ def test_a_full_disk_refuses_by_name_and_recovers_every_acknowledged_episode(tmp
             time.sleep(0.05)
         _fill(disk / "filler")  # the disk is full from here on
         deadline = time.monotonic() + 60
-        while not any("full" in f.read_text().split() for f in files):
+        while not any(f.exists() and "full" in f.read_text().split() for f in files):
             assert time.monotonic() < deadline, "no insert was refused on a full disk"
             time.sleep(0.05)
         sampler = BufferClient(port=port, schema=SCHEMA)
