@@ -243,6 +243,9 @@ class Admission:
 
     def authenticate(self, conn: Conn, client: str) -> None:
         """Count `conn` as `client`'s; RequestError ``too_many_connections`` beyond the limit."""
+        if conn.hello:  # a second hello on the connection: counted once, as its new client
+            self._uncount(conn.client)
+            conn.hello = False
         held = self.per_client.get(client, 0)
         if held >= self.cfg.max_connections_per_client:
             raise RequestError(
@@ -258,8 +261,11 @@ class Admission:
         self.conns.discard(conn.task)
         self.unauth.pop(conn.task, None)
         if conn.hello:
-            left = self.per_client[conn.client] - 1
-            if left:
-                self.per_client[conn.client] = left
-            else:
-                del self.per_client[conn.client]
+            self._uncount(conn.client)
+
+    def _uncount(self, client: str) -> None:
+        left = self.per_client[client] - 1
+        if left:
+            self.per_client[client] = left
+        else:
+            del self.per_client[client]

@@ -195,3 +195,17 @@ def test_authenticated_clients_get_in_within_1s_under_unauthenticated_churn(serv
         for s in opened:
             s.close()
     assert failed == 0 and slowest < 1.0, (failed, slowest)
+
+
+def test_a_second_hello_moves_the_connection_to_its_new_client(serve):
+    srv, _ = serve(max_connections_per_client=1)
+    raw = Raw(srv.port, hello(client="a"))
+    try:
+        assert raw.ask(hello(client="b"))["ok"] is True
+        other = Raw(srv.port, hello(client="a"))  # "a" holds none now
+        other.close()
+        refused = Raw(srv.port)
+        assert refused.ask(hello(client="b"))["error"] == "too_many_connections"
+        refused.close()
+    finally:
+        raw.close()
