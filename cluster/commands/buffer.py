@@ -21,6 +21,21 @@ TABLE_HELP = (
 )
 log = logging.getLogger(__name__)
 LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}
+# --flag, BufferConfig field, type, the field's unit per the flag's, help (issue 40's limits)
+LIMITS = [
+    ("--snapshot-every-mb", "snapshot_every_bytes", float, 2**20,
+     "also snapshot once the log holds this many MiB (0 = no byte trigger)"),
+    ("--read-timeout", "read_timeout_s", float, 1,
+     "seconds to transfer a started request or reply; a client not taking its reply is cut off"),
+    ("--idle-timeout", "idle_timeout_s", float, 1,
+     "close an authenticated connection idle this many seconds (clients reconnect)"),
+    ("--max-connections-per-client", "max_connections_per_client", int, 1,
+     "authenticated connections one client id may hold"),
+    ("--max-inflight-mb", "max_inflight_bytes", float, 2**20,
+     "MiB of large requests and sample replies in flight over all connections"),
+    ("--max-inflight-per-client-mb", "max_inflight_bytes_per_client", float, 2**20,
+     "the share of --max-inflight-mb one client may hold"),
+]  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -94,43 +109,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "what cannot be read and accepting acknowledged episodes found missing (a log cut "
         "short or deleted), instead of refusing to start",
     )
-    s.add_argument(
-        "--snapshot-every-mb",
-        type=float,
-        default=BufferConfig.snapshot_every_bytes / 2**20,
-        help="also snapshot once the log holds this many MiB (0 = no byte trigger)",
-    )
-    s.add_argument(
-        "--read-timeout",
-        type=float,
-        default=BufferConfig.read_timeout_s,
-        help="a started request or reply must be transferred within this, seconds; a client "
-        "that does not take its reply is cut off",
-    )
-    s.add_argument(
-        "--idle-timeout",
-        type=float,
-        default=BufferConfig.idle_timeout_s,
-        help="close an authenticated connection idle this long, seconds (clients reconnect)",
-    )
-    s.add_argument(
-        "--max-connections-per-client",
-        type=int,
-        default=BufferConfig.max_connections_per_client,
-        help="authenticated connections one client id may hold",
-    )
-    s.add_argument(
-        "--max-inflight-mb",
-        type=float,
-        default=BufferConfig.max_inflight_bytes / 2**20,
-        help="MiB of large requests and sample replies in flight over all connections",
-    )
-    s.add_argument(
-        "--max-inflight-per-client-mb",
-        type=float,
-        default=BufferConfig.max_inflight_bytes_per_client / 2**20,
-        help="the share of --max-inflight-mb one client may hold",
-    )
+    for flag, field, kind, scale, text in LIMITS:
+        default = getattr(BufferConfig, field) / scale
+        s.add_argument(flag, type=kind, default=default, help=f"{text} (default {default:g})")
     s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
     s.set_defaults(func=cmd_serve)
     v = add_command(
@@ -194,12 +175,12 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         snapshot_dir=args.snapshot_dir,
         fsync=not args.no_fsync,
         snapshot_every_inserts=args.snapshot_every,
-        snapshot_every_bytes=int(args.snapshot_every_mb * 2**20),
-        read_timeout_s=args.read_timeout,
-        idle_timeout_s=args.idle_timeout,
-        max_connections_per_client=args.max_connections_per_client,
-        max_inflight_bytes=int(args.max_inflight_mb * 2**20),
-        max_inflight_bytes_per_client=int(args.max_inflight_per_client_mb * 2**20),
+        **{
+            field: type(getattr(BufferConfig, field))(
+                getattr(args, flag[2:].replace("-", "_")) * scale
+            )
+            for flag, field, _, scale, _ in LIMITS
+        },
         sample_timeout_s=args.sample_timeout,
         insert_timeout_s=args.insert_timeout,
         max_sample_episodes=args.max_sample,
