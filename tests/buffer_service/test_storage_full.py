@@ -91,3 +91,16 @@ def test_shutdown_and_restart_on_a_full_disk_say_so(tmp_path, monkeypatch):
     assert e.value.code == "storage_full"
     disk.full = False
     assert held(tmp_path) == {(0, 0)} and verify(str(tmp_path))["ok"]
+
+
+def test_credit_buffer_serve_on_a_full_disk_exits_by_name(tmp_path, monkeypatch, caplog):
+    import argparse
+
+    from cluster.commands.buffer import cmd_serve, register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["buffer", "serve", "--snapshot-dir", str(tmp_path / "fresh")])
+    FullDisk(tmp_path, monkeypatch).full = True
+    assert cmd_serve(args) == 2
+    assert "cannot start: storage_full" in caplog.text and "Traceback" not in caplog.text
