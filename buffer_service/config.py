@@ -168,7 +168,7 @@ class BufferConfig:
     idle_timeout_s: float = 300.0
     hello_timeout_s: float = 10.0
     max_connections: int = 512
-    max_unauthenticated: int = 128
+    max_unauthenticated: int = 256
     max_connections_per_client: int = 32
     max_hello_bytes: int = 64 * 1024
     max_inflight_bytes: int = 256 * 2**20

@@ -6,6 +6,7 @@ transparently), and ``v`` must be the integer protocol version."""
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import socket
 import threading
@@ -159,31 +160,38 @@ def test_a_client_whose_connection_the_server_closed_reconnects_without_a_retry(
 
 
 @pytest.mark.slow
-def test_authenticated_clients_get_in_within_1s_under_unauthenticated_churn(serve):
-    """Stalled sockets opened as fast as one thread can (each closing the oldest of the
-    unauthenticated ones) while clients with the token connect, one attempt each."""
-    srv, _ = serve(token="t", hello_timeout_s=600)
+def test_authenticated_clients_get_in_within_1s_under_unauthenticated_churn(tmp_path):
+    """A real `credit buffer serve`; stalled sockets opened as fast as two threads can (each
+    closing the oldest of the unauthenticated ones, the newest 300 kept open) while clients
+    with the token connect: each is served within 1 s (with the client's own retries: one
+    whose connection was evicted before its hello was processed reconnects after 50 ms)."""
+    from tests.buffer_service.test_chaos import _serve
+    from tests.buffer_service.test_durability import _stop
+
+    port_file = tmp_path / "port.json"
+    proc = _serve(tmp_path / "snap", 0, port_file, tmp_path / "serve.log", "--token", "t")
+    port = json.loads(port_file.read_text())["port"]
     stop, opened = threading.Event(), []
 
     def churn() -> None:
         while not stop.is_set():
             with contextlib.suppress(OSError):
-                opened.append(socket.create_connection(("127.0.0.1", srv.port), timeout=5))
+                opened.append(socket.create_connection(("127.0.0.1", port), timeout=5))
             if len(opened) > 300:  # keep the newest 300
                 opened.pop(0).close()
 
     threads = [threading.Thread(target=churn) for _ in range(2)]
     for th in threads:
         th.start()
-    slowest, failed = 0.0, 0
+    times, failed = [], 0
     try:
         time.sleep(0.5)
         for i in range(60):
             started = time.monotonic()
-            c = BufferClient(port=srv.port, token="t", max_retries=0, client_id=f"c{i}")
+            c = BufferClient(port=port, token="t", client_id=f"c{i}")  # its own retries
             try:
                 c.stats()
-                slowest = max(slowest, time.monotonic() - started)
+                times.append(time.monotonic() - started)
             except (ConnectionError, BufferServiceError):
                 failed += 1
             finally:
@@ -194,7 +202,8 @@ def test_authenticated_clients_get_in_within_1s_under_unauthenticated_churn(serv
             th.join()
         for s in opened:
             s.close()
-    assert failed == 0 and slowest < 1.0, (failed, slowest)
+        _stop(proc)
+    assert failed == 0 and max(times) < 1.0, (failed, sorted(times)[-5:])
 
 
 def test_a_second_hello_moves_the_connection_to_its_new_client(serve):
