@@ -11,6 +11,9 @@ checksum means a record's length can be trusted once the header checks out: a re
 payload is damaged is skipped by its length and the records after it are still read. A
 damaged header is skipped by scanning for the next magic whose header checksum holds.
 
+A reader (`scan_file`, `iter_file`) reads a file forward in bounded pieces, one record at a
+time, so restoring a log needs memory for its largest record, not for the file.
+
 What a reader calls what it finds:
 
 * *damaged*: bytes that are not an intact record, followed by an intact record, or at the end
@@ -232,14 +235,15 @@ def _scan_legacy(data: bytes, out: Scan) -> Iterator[Record]:
         pos = end
 
 
-def _is_legacy(data: bytes) -> bool:
-    if len(data) < LEGACY.size:
+def _is_legacy(src: _File) -> bool:
+    """Does the file start with an intact format-1 record? (Reads that record only.)"""
+    head = src.read(0, LEGACY.size)
+    if len(head) < LEGACY.size:
         return False
-    length, crc, kind, mlen = LEGACY.unpack_from(data, 0)
-    end = LEGACY.size + length
-    if kind not in KINDS or mlen > length or end > len(data):
+    length, crc, kind, mlen = LEGACY.unpack_from(head, 0)
+    if kind not in KINDS or mlen > length or LEGACY.size + length > src.n:
         return False
-    return zlib.crc32(data[LEGACY.size : end]) == crc
+    return zlib.crc32(src.read(LEGACY.size, length)) == crc
 
 
 def iter_file(f: BinaryIO, out: Scan) -> Iterator[Record]:
@@ -250,15 +254,12 @@ def iter_file(f: BinaryIO, out: Scan) -> Iterator[Record]:
     if not n:
         return
     src = _File(f, n)
-    if _header_at(src.read(0, HEAD_SIZE), 0) is None:
-        data = src.read(0, n)
-        if _is_legacy(data):
-            out.format = 1
-            for rec in _scan_legacy(data, out):
-                out.add(rec, keep=False)
-                yield rec
-            return
-        del data
+    if _header_at(src.read(0, HEAD_SIZE), 0) is None and _is_legacy(src):
+        out.format = 1
+        for rec in _scan_legacy(src.read(0, n), out):
+            out.add(rec, keep=False)
+            yield rec
+        return
     for rec in _scan_v2(src, out):
         out.format = 2
         out.add(rec, keep=False)
