@@ -104,3 +104,27 @@ def test_credit_buffer_serve_on_a_full_disk_exits_by_name(tmp_path, monkeypatch,
     FullDisk(tmp_path, monkeypatch).full = True
     assert cmd_serve(args) == 2
     assert "cannot start: storage_full" in caplog.text and "Traceback" not in caplog.text
+
+
+def test_a_failed_fsync_is_not_acknowledged_and_writes_stop_until_restart(tmp_path, monkeypatch):
+    srv, c = boot(tmp_path)
+    try:
+        c.insert([make_episode(0, 0)])
+        real_fsync = os.fsync
+
+        def fsync(fd):
+            if os.readlink(f"/proc/self/fd/{fd}").startswith(str(tmp_path)):
+                raise OSError(errno.EIO, os.strerror(errno.EIO))
+            return real_fsync(fd)
+
+        monkeypatch.setattr(os, "fsync", fsync)
+        with pytest.raises(BufferServiceError, match="fsync failed"):
+            c.insert([make_episode(0, 1)])  # written, never acknowledged
+        monkeypatch.setattr(os, "fsync", real_fsync)
+        with pytest.raises(BufferServiceError, match="restart the service"):
+            c.insert([make_episode(0, 2)])  # the kernel may have dropped the pages
+        assert c.sample("replay", 1).batch_size == 1  # reads go on
+    finally:
+        c.close()
+        srv.stop(snapshot=False)
+    assert {(0, 0)} <= held(tmp_path) <= {(0, 0), (0, 1)}
