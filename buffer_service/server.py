@@ -59,6 +59,7 @@ from buffer_service.connections import (
 from buffer_service.episode import EPISODE_ARRAYS, Episode, EpisodeSchema
 from buffer_service.metrics import BufferMetrics
 from buffer_service.requests import RequestError
+from buffer_service.scheduling import SnapshotScheduling
 from buffer_service.state import BufferState
 from buffer_service.storage import Storage, WriteError
 
@@ -77,7 +78,7 @@ def reply_bytes(ep: Episode) -> int:
     return REPLY_OVERHEAD + sum(getattr(ep, f).nbytes for f in EPISODE_ARRAYS)
 
 
-class BufferServer:
+class BufferServer(SnapshotScheduling):
     """The service on the current event loop: ``await start()``, then ``await close()``.
 
     Args:
@@ -144,17 +145,6 @@ class BufferServer:
                 await asyncio.gather(self._snapshotting, return_exceptions=True)
             self.storage.close()
         self.metrics.stop_exporter()
-
-    async def _final_snapshot(self) -> None:
-        try:
-            await self._snapshot()
-        except RequestError as e:  # a full disk: nothing is lost, the logs hold it all
-            self.close_error = f"{e.code}: {e}"
-            log.error(
-                "final snapshot not written (%s); the logs hold every acknowledged episode "
-                "and a restart replays them",
-                self.close_error,
-            )
 
     # ---------------------------------------------------------------- connections
 
@@ -393,52 +383,6 @@ class BufferServer:
         assert self._changed is not None
         async with self._changed:
             self._changed.notify_all()
-
-    def _maybe_snapshot(self) -> None:
-        """Start a snapshot in the background when enough inserts were logged since the last."""
-        every, st = self.cfg.snapshot_every_inserts, self.storage
-        if st is None or self._snapshotting is not None:
-            return
-        by_bytes = self.cfg.snapshot_every_bytes and st.size >= self.cfg.snapshot_every_bytes
-        if (every and st.records_since_snapshot >= every) or by_bytes:
-            try:
-                self._start_snapshot()
-            except WriteError as e:  # a full disk: the log goes on; tried again later
-                log.warning("snapshot not started: %s", e)
-
-    def _start_snapshot(self) -> asyncio.Future:
-        """Switch the log and copy the state's references here, on the loop (cheap); write
-        the file in a thread. Requests go on meanwhile: the inserts they log go to the new
-        log, so nothing waits for the snapshot to finish."""
-        assert self.storage is not None and self._snapshotting is None
-        job = self.storage.begin_snapshot(self.state)
-        fut = asyncio.ensure_future(asyncio.to_thread(job.write))
-        self._snapshotting = fut
-        fut.add_done_callback(self._snapshot_done)
-        return fut
-
-    def _snapshot_done(self, fut: asyncio.Future) -> None:
-        if self._snapshotting is fut:
-            self._snapshotting = None
-        if not fut.cancelled() and fut.exception() is not None:
-            log.error("snapshot failed (the logs still hold everything): %s", fut.exception())
-        elif self._server is not None and self._server.is_serving():
-            self._maybe_snapshot()  # became due while this one was written
-
-    async def _snapshot(self) -> str:
-        """Snapshot now, after the one in progress if any; returns its path."""
-        while self._snapshotting is not None:
-            running = self._snapshotting
-            await asyncio.gather(running, return_exceptions=True)
-            if self._snapshotting is running:
-                self._snapshotting = None
-        try:
-            return await asyncio.shield(self._start_snapshot())
-        except WriteError as e:
-            raise RequestError(e.code, f"snapshot failed: {e}") from None
-        except OSError as e:
-            code = WriteError("", e).code
-            raise RequestError(code, f"snapshot failed: {e}") from None
 
     def _update_sizes(self) -> None:
         for name, t in self.state.tables.items():
