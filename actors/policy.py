@@ -9,8 +9,9 @@ import torch
 
 @dataclass(frozen=True)
 class ExplorationConfig:
-    """ε-greedy schedule for the value family (seed 5.3.3: 1.0 -> 0.05 over 50k steps on SMAC,
-    2000 steps on the matrix games); policy-gradient agents sample their softmax instead.
+    """ε-greedy schedule for the value family (the dissertation, 5.3.3: 1.0 -> 0.05 over 50k
+    steps on SMAC, 2000 steps on the matrix games); policy-gradient agents sample their softmax
+    instead.
 
     Attributes:
         epsilon_start: ε at t_env = 0.

@@ -14,6 +14,13 @@ safe because the server deduplicates on ``(actor_id, episode_seq)``: the episode
 at most once and the retry is acknowledged. A retried *sample* may have consumed the lost
 reply's episodes (they count towards a cycling table's K); it never duplicates data.
 
+Idle connections: the server closes an authenticated connection idle for its
+``idle_timeout_s`` (sent in its hello reply). Before a request the client reconnects,
+without a retry or a warning, when its connection has idled that long or the server closed
+it, so a learner that pauses (a long evaluation) carries on as if nothing happened. Every
+connection names this client in its hello (``client_id``, by default ``host:pid``), which
+is what the server's per-client connection limit counts.
+
 Thread safety: one request is in flight per client at a time (an internal lock serialises
 callers); give each thread its own client for parallel requests.
 """
@@ -21,6 +28,8 @@ callers); give each thread its own client for parallel requests.
 from __future__ import annotations
 
 import logging
+import os
+import select
 import socket
 import threading
 import time
@@ -34,6 +43,8 @@ from buffer_service.packed import PackedEpisode
 log = logging.getLogger(__name__)
 
 PER_EPISODE_OVERHEAD = 1024  # msgpack keys, dtype strings, shapes (generous)
+# errors after which the server closes the connection
+CLOSING = ("auth", "bad_version", "hello_required", "frame_too_large", "too_many_connections")
 
 
 class BufferServiceError(RuntimeError):
@@ -68,6 +79,8 @@ class BufferClient:
         max_retries: transport retries per request before giving up (ConnectionError).
         backoff_s, max_backoff_s: first retry delay and its cap (doubling in between).
         max_frame_bytes: largest reply accepted.
+        client_id: the client this is, for the server's per-client connection limit
+            (default ``host:pid``: the clients of one process count together).
     """
 
     def __init__(
@@ -82,6 +95,7 @@ class BufferClient:
         backoff_s: float = 0.05,
         max_backoff_s: float = 2.0,
         max_frame_bytes: int = 2**32 - 1,
+        client_id: str | None = None,
     ) -> None:
         self.host, self.port, self.token = host, port, token
         self.schema = schema
@@ -93,6 +107,9 @@ class BufferClient:
         self.server_max_frame = 64 * 2**20
         self.tables: list[str] = []
         self.reconnects = 0
+        self.client_id = client_id or f"{socket.gethostname()}:{os.getpid()}"
+        self.idle_timeout_s = float("inf")  # the server's, from its hello reply
+        self._last_io = 0.0  # when the connection last carried a reply (monotonic)
         self._sock: socket.socket | None = None
         self._lock = threading.Lock()
 
@@ -204,6 +221,8 @@ class BufferClient:
         with self._lock:
             for attempt in range(self.max_retries + 1):
                 try:
+                    if self._sock is not None and self._stale():
+                        self._drop()  # closed or about to be closed for idling: reconnect
                     if self._sock is None:
                         self._connect()
                     wait = extra_timeout if extra_timeout is not None else 0.0
@@ -222,11 +241,24 @@ class BufferClient:
                     delay = min(delay * 2, self.max_backoff_s)
         raise AssertionError("unreachable")
 
+    def _stale(self) -> bool:
+        """Has the server closed this connection, or is it about to for idling?"""
+        assert self._sock is not None
+        if time.monotonic() - self._last_io > 0.8 * self.idle_timeout_s:
+            return True
+        try:
+            readable, _, _ = select.select([self._sock], [], [], 0)
+            # nothing to read is the normal case; readable between requests means closed
+            return bool(readable) and self._sock.recv(1, socket.MSG_PEEK) == b""
+        except OSError:
+            return True
+
     def _connect(self) -> None:
         sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._sock = sock
         hello: dict[str, Any] = {"op": "hello", "v": PROTOCOL_VERSION, "token": self.token}
+        hello["client"] = self.client_id
         if self.schema is not None:
             hello["schema"] = self.schema.to_dict()
         try:
@@ -238,6 +270,7 @@ class BufferClient:
             self.schema = EpisodeSchema.from_dict(reply["schema"])
         self.server_max_frame = int(reply["max_frame_bytes"])
         self.tables = list(reply["tables"])
+        self.idle_timeout_s = float(reply.get("idle_timeout_s", float("inf")))
         self.reconnects += 1
 
     def _drop(self) -> None:
@@ -264,10 +297,11 @@ class BufferClient:
             reply = codec.unpack(self._recv_exact(length))
         except codec.CodecError as e:
             raise _TransportError(f"unreadable reply: {e}") from None
+        self._last_io = time.monotonic()
         if reply.get("ok") is True:
             return reply
         code, message = str(reply.get("error")), str(reply.get("message"))
-        if code in ("auth", "bad_version", "hello_required", "frame_too_large"):
+        if code in CLOSING:
             self._drop()  # the server closes these connections
         cls = {"rate_limited": RateLimitedError, "auth": AuthError}.get(code, BufferServiceError)
         raise cls(code, message)

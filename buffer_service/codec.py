@@ -64,6 +64,8 @@ ERROR_CODES: frozenset[str] = frozenset(
         "no_table",  # a table name the server does not have
         "rate_limited",  # the rate limiter did not allow the op within its timeout
         "bad_request",  # out-of-range values: batch_size above the cap, empty or repeated tables
+        "storage_full",  # the log could not be written (no space): nothing was stored
+        "too_many_connections",  # the client holds max_connections_per_client already
         "internal",
     }
 )

@@ -128,23 +128,36 @@ class BufferConfig:
             loss or kernel crash).
         snapshot_every_inserts: write a snapshot (and truncate the log) after this many
             logged insert requests (0 = only on the snapshot op and on shutdown).
+        snapshot_every_bytes: also write one once the log holds this many bytes (0 = no
+            byte trigger), bounding the log's disk use and the restart's replay.
         sample_timeout_s: longest a sample waits for the rate limiter (requests may ask
             for less).
         insert_timeout_s: longest an insert waits for the rate limiter.
         read_timeout_s: a started frame (request or reply) must be transferred completely
-            within this time; an authenticated connection may idle between frames.
+            within this time, else the connection is aborted (its buffers freed).
+        idle_timeout_s: an authenticated connection idle between frames for longer is
+            closed (the project's BufferClient reconnects transparently).
         hello_timeout_s: a new connection must complete its hello within this time.
         max_connections: concurrent connections; when full, a new one takes the place of
             the oldest connection that has not completed its hello, else it is closed at once.
         max_unauthenticated: connections that have not completed their hello; a new one
-            beyond this closes the oldest of them (so stalled sockets cannot lock clients out).
+            beyond this closes the oldest of them (so stalled sockets cannot lock clients
+            out); the other max_connections - max_unauthenticated slots are reserved for
+            authenticated connections.
+        max_connections_per_client: authenticated connections of one client (the ``client``
+            id of its hello); a hello beyond it is refused with ``too_many_connections``.
         max_hello_bytes: largest frame accepted before a hello succeeded.
         max_inflight_bytes: request bodies larger than max_hello_bytes that are read and
-            handled at once, in bytes over all connections (further ones wait); with
-            max_frame_bytes and max_sample_episodes it bounds the server's memory.
+            handled at once, and sample replies being written, in bytes over all
+            connections (further ones wait): beside the stored episodes, the server's
+            memory is this plus about 1 MiB of socket buffers per connection.
+        max_inflight_bytes_per_client: the share of max_inflight_bytes one client may hold
+            (a larger sample reply is refused), so slow readers of one client cannot take
+            every other client's share.
         max_sample_episodes: largest batch_size of one sample request.
         repair: on start, keep what a damaged snapshot_dir still holds and discard the rest
-            (saying what) instead of refusing to start.
+            (saying what), accepting acknowledged episodes that are missing, instead of
+            refusing to start.
         dedup_window: per actor, how many episode_seq values are remembered exactly; seqs
             further behind the actor's window are treated as already inserted.
         metrics_port: Prometheus HTTP port on 127.0.0.1 (None = no exporter, 0 = any).
@@ -163,14 +176,18 @@ class BufferConfig:
     snapshot_dir: str | None = None
     fsync: bool = True
     snapshot_every_inserts: int = 10_000
+    snapshot_every_bytes: int = 1 << 30
     sample_timeout_s: float = 30.0
     insert_timeout_s: float = 30.0
     read_timeout_s: float = 30.0
+    idle_timeout_s: float = 300.0
     hello_timeout_s: float = 10.0
-    max_connections: int = 256
-    max_unauthenticated: int = 32
+    max_connections: int = 512
+    max_unauthenticated: int = 256
+    max_connections_per_client: int = 32
     max_hello_bytes: int = 64 * 1024
     max_inflight_bytes: int = 256 * 2**20
+    max_inflight_bytes_per_client: int = 128 * 2**20
     max_sample_episodes: int = 1024
     repair: bool = False
     dedup_window: int = 1 << 16
@@ -192,15 +209,25 @@ class BufferConfig:
             t.validate()
         if self.max_frame_bytes < 1024:
             raise ValueError("max_frame_bytes must be >= 1024")
-        for name in ("sample_timeout_s", "insert_timeout_s", "read_timeout_s", "hello_timeout_s"):
+        timeouts = ("sample_timeout_s", "insert_timeout_s", "read_timeout_s", "hello_timeout_s")
+        for name in (*timeouts, "idle_timeout_s"):
             if not 0 < getattr(self, name) < math.inf:
                 raise ValueError(f"{name} must be a finite number > 0")
         if not 1024 <= self.max_hello_bytes <= self.max_frame_bytes:
             raise ValueError("max_hello_bytes must be in 1024..max_frame_bytes")
         if self.max_inflight_bytes < self.max_frame_bytes:
             raise ValueError("max_inflight_bytes must be >= max_frame_bytes")
+        per_client = self.max_inflight_bytes_per_client
+        if not self.max_frame_bytes <= per_client <= self.max_inflight_bytes:
+            raise ValueError(
+                "max_inflight_bytes_per_client must be in max_frame_bytes..max_inflight_bytes"
+            )
         if self.max_unauthenticated < 1:
             raise ValueError("max_unauthenticated must be >= 1")
+        if self.max_connections_per_client < 1:
+            raise ValueError("max_connections_per_client must be >= 1")
+        if self.snapshot_every_bytes < 0:
+            raise ValueError("snapshot_every_bytes must be >= 0")
         if self.max_sample_episodes < 1:
             raise ValueError("max_sample_episodes must be >= 1")
         if self.snapshot_every_inserts < 0:

@@ -1,4 +1,4 @@
-"""Prometheus metrics of one buffer server (DESIGN.md §5 names), on their own registry.
+"""Prometheus metrics of one buffer server (docs/design.md, "Metrics"), on their own registry.
 
 A dedicated CollectorRegistry per server keeps several servers in one process (tests)
 from colliding; `start_exporter` serves it on 127.0.0.1 only.

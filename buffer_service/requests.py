@@ -1,4 +1,4 @@
-"""Checking one request before the server acts on it (DESIGN.md §4).
+"""Checking one request before the server acts on it (docs/design.md, "Wire protocol").
 
 Every check here runs before anything is logged, stored or sampled, and a refused request
 raises `RequestError` whose message names the offending field. The server only calls these
@@ -17,7 +17,7 @@ from buffer_service.episode import Episode, EpisodeError, EpisodeSchema
 # The fields each op may carry besides ``op`` and ``v``; anything else is refused, so an
 # insert's log record holds exactly what is stored.
 OP_FIELDS: dict[str, frozenset[str]] = {
-    "hello": frozenset({"token", "schema"}),
+    "hello": frozenset({"token", "schema", "client"}),
     "insert": frozenset({"episodes", "tables", "timeout_s"}),
     "sample": frozenset({"table", "batch_size", "timeout_s"}),
     "stats": frozenset(),
@@ -53,6 +53,18 @@ def timeout(msg: dict[str, Any], limit: float) -> float:
     if not math.isfinite(value):
         return limit
     return min(float(value), limit)
+
+
+MAX_CLIENT_ID = 256
+
+
+def client_id(msg: dict[str, Any]) -> str:
+    """The ``client`` a hello names (``""`` when it names none): a string of at most
+    `MAX_CLIENT_ID` characters."""
+    value = msg.get("client", "")
+    if not isinstance(value, str) or len(value) > MAX_CLIENT_ID:
+        raise RequestError("bad_frame", f"client must be a string of <= {MAX_CLIENT_ID} chars")
+    return value
 
 
 def schema(raw: Any) -> EpisodeSchema:

@@ -89,18 +89,22 @@ def start_server_thread(cfg: BufferConfig) -> ServerThread:
     return ServerThread(cfg).start()
 
 
-def run(cfg: BufferConfig, port_file: str | None = None) -> None:
+def run(cfg: BufferConfig, port_file: str | None = None) -> str | None:
     """Serve in the foreground until SIGINT/SIGTERM (the `credit buffer serve` body).
 
     Args:
         cfg: the server config.
         port_file: once listening, atomically write ``{"host", "port", "metrics_port",
             "pid"}`` as JSON here (how a launcher learns a port picked with port 0).
+
+    Returns:
+        None after a clean shutdown, else why the final snapshot was not written (a full
+        disk; the logs still hold every acknowledged episode).
     """
-    asyncio.run(_run_main(cfg, port_file))
+    return asyncio.run(_run_main(cfg, port_file))
 
 
-async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
+async def _run_main(cfg: BufferConfig, port_file: str | None) -> str | None:
     import json
     import signal
 
@@ -122,3 +126,4 @@ async def _run_main(cfg: BufferConfig, port_file: str | None) -> None:
     finally:
         log.info("buffer service shutting down")
         await server.close()
+    return server.close_error

@@ -1,4 +1,4 @@
-"""The buffer service: an asyncio TCP server of whole episodes (DESIGN.md §4).
+"""The buffer service: an asyncio TCP server of whole episodes (docs/design.md, "Wire protocol").
 
 One event loop owns all state, so request handling needs no locks. An insert's log record is
 written and its episodes applied on the loop; its reply waits for an fsync that runs in a
@@ -10,7 +10,8 @@ state's references on the loop and is written in a thread, so requests go on mea
 
 Ops (request fields -> reply fields; every reply has ``ok``):
 
-* ``hello``  {token, schema?} -> {v, schema, tables, max_frame_bytes}. Required first.
+* ``hello``  {token, schema?, client?} -> {v, schema, tables, max_frame_bytes,
+  idle_timeout_s}. Required first; ``client`` names the client (for its connection limit).
 * ``insert`` {episodes: [episode], tables?: [name], timeout_s?} -> {inserted, duplicates}.
   All-or-nothing validation; duplicates of ``(actor_id, episode_seq)`` are acknowledged
   and not stored again. Waits for the rate limiter, then ``rate_limited``.
@@ -18,11 +19,17 @@ Ops (request fields -> reply fields; every reply has ``ok``):
   limiter, then ``rate_limited``.
 * ``stats``  {} -> {stats}.   * ``snapshot`` {} -> {path}.
 
+An insert whose log record cannot be written (a full disk) is refused with ``storage_full``
+and nothing of it is stored or logged; samples go on (a sample record that cannot be written
+is skipped: see `buffer_service.storage` for what that costs). ``v`` must be the integer
+`PROTOCOL_VERSION` (``true`` is not 1).
+
 Fields an op does not define are refused (``bad_frame``), and so is anything that cannot be
 served correctly (see `buffer_service.requests`), before anything is logged or stored.
 Errors reply ``{ok: false, error, message}``; ``frame_too_large``, ``bad_version``,
-``auth`` and ``hello_required`` also close the connection. Other clients never notice:
-deadlines and limits on reading frames are `buffer_service.connections`'.
+``auth``, ``hello_required`` and ``too_many_connections`` also close the connection.
+Other clients never notice: deadlines and limits of connections, frames and replies are
+`buffer_service.connections`'.
 """
 
 from __future__ import annotations
@@ -38,62 +45,41 @@ from typing import Any
 
 from buffer_service import codec, requests
 from buffer_service.codec import PROTOCOL_VERSION, CodecError
+from buffer_service.commit import GroupCommit
 from buffer_service.config import BufferConfig
-from buffer_service.connections import ByteBudget, Conn, FrameTooLargeError
+from buffer_service.connections import (
+    Admission,
+    ByteBudget,
+    Conn,
+    FrameTooLargeError,
+    IdleError,
+    abort,
+    write_frame,
+)
 from buffer_service.episode import EpisodeSchema
 from buffer_service.metrics import BufferMetrics
+from buffer_service.packed import PackedEpisode
 from buffer_service.requests import RequestError
+from buffer_service.scheduling import SnapshotScheduling
 from buffer_service.state import BufferState
-from buffer_service.storage import Storage
+from buffer_service.storage import Storage, WriteError
 
 log = logging.getLogger(__name__)
 
-CLOSING_ERRORS = frozenset({"frame_too_large", "bad_version", "auth", "hello_required"})
+CLOSING_ERRORS = frozenset(
+    {"frame_too_large", "bad_version", "auth", "hello_required", "too_many_connections"}
+)
+REPLY_OVERHEAD = 512  # wire bytes of one episode beside its arrays (keys, dtypes, shapes)
+
+__all__ = ["BufferServer", "GroupCommit"]
 
 
-class GroupCommit:
-    """Acknowledge inserts once fsynced, with one fsync for every record written before it
-    started. The fsync runs in a thread, so the event loop keeps taking requests meanwhile;
-    with a single connection (nothing to group) it runs inline, saving the hand-off.
-
-    Calling pattern (on the event loop)::
-
-        n = storage.append_insert(tables, body)
-        await commits.durable(n)        # returns once an fsync (or a snapshot) covered record n
-        await commits.idle()            # no fsync in flight (before closing the storage)
-    """
-
-    def __init__(self, storage: Storage) -> None:
-        self.storage = storage
-        self.synced = 0  # the last record number an fsync (or a snapshot) made durable
-        self.fsyncs = 0
-        self._task: asyncio.Task | None = None
-
-    async def durable(self, record: int, alone: bool = False) -> None:
-        """Return once `record` is fsynced. `alone`: no other connection can write meanwhile,
-        so there is nothing to group and the fsync runs here, without the thread hand-off."""
-        if alone and self._task is None and self.synced < record:
-            self.synced = max(self.synced, self.storage.sync())
-            self.fsyncs += 1
-        while self.synced < record:
-            if self._task is None:
-                self._task = asyncio.ensure_future(self._sync())
-            await asyncio.shield(self._task)
-
-    async def idle(self) -> None:
-        while self._task is not None:
-            await asyncio.shield(self._task)
-
-    async def _sync(self) -> None:
-        try:
-            upto = await asyncio.to_thread(self.storage.sync)
-            self.synced = max(self.synced, upto)
-            self.fsyncs += 1
-        finally:
-            self._task = None
+def reply_bytes(ep: PackedEpisode) -> int:
+    """An upper bound of the bytes `ep` takes in a sample reply (its packed buffer)."""
+    return REPLY_OVERHEAD + ep.data.nbytes
 
 
-class BufferServer:
+class BufferServer(SnapshotScheduling):
     """The service on the current event loop: ``await start()``, then ``await close()``.
 
     Args:
@@ -116,9 +102,11 @@ class BufferServer:
         self.metrics_port: int | None = None
         self._server: asyncio.base_events.Server | None = None
         self._changed: asyncio.Condition | None = None
-        self._conns: set[asyncio.Task] = set()
-        self._unauth: dict[asyncio.Task, None] = {}  # no hello yet, oldest first
+        self._admission = Admission(cfg)
+        self._conns = self._admission.conns
         self._budget: ByteBudget | None = None
+        self.unlogged_samples = 0  # samples served whose record could not be written
+        self.close_error: str | None = None  # why the final snapshot was not written
         self._snapshotting: asyncio.Future | None = None
         # Requests the rate limiter held back, per op: [count, seconds waited, timeouts].
         self.limiter_waits: dict[str, list[float]] = {"insert": [0, 0.0, 0], "sample": [0, 0.0, 0]}
@@ -129,7 +117,8 @@ class BufferServer:
             self.storage.restore(self.state)
         self._update_sizes()
         self._changed = asyncio.Condition()
-        self._budget = ByteBudget(self.cfg.max_inflight_bytes)
+        cfg = self.cfg
+        self._budget = ByteBudget(cfg.max_inflight_bytes, cfg.max_inflight_bytes_per_client)
         self._server = await asyncio.start_server(
             self._on_connect, self.cfg.host, self.cfg.port, limit=2**16, backlog=1024
         )
@@ -152,7 +141,7 @@ class BufferServer:
             if self.commits is not None:
                 await self.commits.idle()
             if snapshot:
-                await self._snapshot()
+                await self._final_snapshot()
             elif self._snapshotting is not None:
                 await asyncio.gather(self._snapshotting, return_exceptions=True)
             self.storage.close()
@@ -162,40 +151,31 @@ class BufferServer:
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
         task = asyncio.current_task()
-        if not self._admit():
+        admitted, evicted = self._admission.admit(task)
+        if evicted:
+            self.metrics.rejected.labels(reason="unauthenticated_evicted").inc()
+        if not admitted:
             self.metrics.rejected.labels(reason="max_connections").inc()
-            writer.close()
+            abort(writer)
             return
-        self._conns.add(task)
-        self._unauth[task] = None
+        conn = Conn(task, self.cfg)
         try:
-            await self._serve_connection(reader, writer, Conn(task, self.cfg))
+            await self._serve_connection(reader, writer, conn)
+        except IdleError:
+            self.metrics.rejected.labels(reason="idle").inc()
         except (TimeoutError, ConnectionError, asyncio.IncompleteReadError):
-            pass
+            abort(writer)  # (a reply's transport is aborted already)
         except asyncio.CancelledError:
-            pass
+            abort(writer)
         except Exception:
             log.exception("buffer connection handler failed")
+            abort(writer)
         finally:
-            self._conns.discard(task)
-            self._unauth.pop(task, None)
+            self._admission.leave(conn)
+            self._release_reply(conn)
             writer.close()
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
-
-    def _admit(self) -> bool:
-        """Room for one more connection? When full, the oldest connection that has not
-        completed its hello is closed to make room; without one the new one is refused."""
-        cfg = self.cfg
-        if len(self._conns) < cfg.max_connections and len(self._unauth) < cfg.max_unauthenticated:
-            return True
-        if not self._unauth:
-            return False
-        oldest = next(iter(self._unauth))
-        del self._unauth[oldest]
-        oldest.cancel()
-        self.metrics.rejected.labels(reason="unauthenticated_evicted").inc()
-        return True
 
     async def _serve_connection(self, reader, writer, conn: Conn) -> None:
         assert self._budget is not None
@@ -204,33 +184,39 @@ class BufferServer:
                 async with conn.frame(reader, self._budget) as body:
                     reply = await self._dispatch(body, conn)
             except FrameTooLargeError as e:
-                await self._reply(writer, self._error("frame_too_large", str(e)))
+                await self._reply(writer, self._error("frame_too_large", str(e)), conn)
                 return
             except RequestError as e:
-                await self._reply(writer, self._error(e.code, str(e)))
+                await self._reply(writer, self._error(e.code, str(e)), conn)
                 if e.code in CLOSING_ERRORS:
                     return
                 continue
-            await self._reply(writer, reply)
+            await self._reply(writer, reply, conn)
 
     def _error(self, code: str, message: str) -> dict[str, Any]:
         self.metrics.rejected.labels(reason=code).inc()
         log.debug("refused request: %s: %s", code, message)
         return codec.error_reply(code, message)
 
-    async def _reply(self, writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
-        parts = codec.pack_parts(reply)
-        size = sum(memoryview(p).nbytes for p in parts)
-        writer.writelines([codec.FRAME_HEADER.pack(size), *parts])
-        async with asyncio.timeout(self.cfg.read_timeout_s):  # a client that does not read
-            await writer.drain()
+    async def _reply(self, writer, reply: dict[str, Any], conn: Conn) -> None:
+        """Write `reply` (aborting the connection if the client does not take it within
+        read_timeout_s), then give back the budget share a sample reply held."""
+        try:
+            await write_frame(writer, codec.pack_parts(reply), self.cfg.read_timeout_s)
+        finally:
+            self._release_reply(conn)
+
+    def _release_reply(self, conn: Conn) -> None:
+        if conn.reply_bytes and self._budget is not None:
+            self._budget.give(conn.reply_bytes, conn.client)
+            conn.reply_bytes = 0
 
     async def _dispatch(self, body: bytes | bytearray, conn: Conn) -> dict[str, Any]:
         try:
             msg = codec.unpack(body)
         except CodecError as e:
             raise RequestError("bad_frame", str(e)) from None
-        if msg.get("v") != PROTOCOL_VERSION:
+        if type(msg.get("v")) is not int or msg["v"] != PROTOCOL_VERSION:
             raise RequestError(
                 "bad_version",
                 f"protocol version {msg.get('v')!r}, server speaks {PROTOCOL_VERSION}",
@@ -244,7 +230,7 @@ class BufferServer:
         if op == "insert":
             return await self._op_insert(msg, body)
         if op == "sample":
-            return await self._op_sample(msg)
+            return await self._op_sample(msg, conn)
         if op == "stats":
             return self._ok(stats=self.stats())
         if self.storage is None:  # op == "snapshot"
@@ -263,22 +249,27 @@ class BufferServer:
             isinstance(token, str) and hmac.compare_digest(token.encode(), self.cfg.token.encode())
         ):
             raise RequestError("auth", "wrong or missing token")
+        client = requests.client_id(msg)
         if msg.get("schema") is not None:
             self._adopt_schema(requests.schema(msg["schema"]))
-        conn.hello = True
-        self._unauth.pop(conn.task, None)
+        self._admission.authenticate(conn, client)
         schema_d = self.state.schema.to_dict() if self.state.schema else None
         return self._ok(
             schema=schema_d,
             tables=list(self.state.tables),
             max_frame_bytes=self.cfg.max_frame_bytes,
+            idle_timeout_s=self.cfg.idle_timeout_s,
         )
 
     def _adopt_schema(self, schema: EpisodeSchema) -> None:
         if self.state.schema is None:
             self.state.schema = schema
             if self.storage is not None:
-                self.storage.log_schema(schema)
+                try:
+                    self.storage.log_schema(schema)
+                except WriteError as e:
+                    self.state.schema = None
+                    raise RequestError(e.code, str(e)) from None
             log.info("buffer learned episode schema %s", schema)
         elif schema != self.state.schema:
             raise RequestError(
@@ -300,7 +291,10 @@ class BufferServer:
             )
         fresh = [ep for ep in eps if not self.state.is_duplicate(ep.key)]
         if fresh and self.storage is not None:
-            self.storage.append_insert(tables, body)
+            try:
+                self.storage.append_insert(tables, body, len(eps))
+            except WriteError as e:  # rolled back: nothing of it stored or logged
+                raise RequestError(e.code, str(e)) from None
         stored = sum(self.state.insert(ep, tables) for ep in eps)
         dups = len(eps) - stored
         for t in tables:
@@ -313,22 +307,59 @@ class BufferServer:
         if self.commits is not None:
             # Acknowledged only once fsynced; a duplicate too, as its first insert may still be
             # waiting for its fsync.
-            await self.commits.durable(self.storage.written, alone=len(self._conns) == 1)
+            try:
+                await self.commits.durable(self.storage.written, alone=len(self._conns) == 1)
+            except WriteError as e:
+                raise RequestError(e.code, str(e)) from None
         return self._ok(inserted=stored, duplicates=dups)
 
-    async def _op_sample(self, msg: dict[str, Any]) -> dict[str, Any]:
+    async def _op_sample(self, msg: dict[str, Any], conn: Conn) -> dict[str, Any]:
         name, n = requests.sample_args(msg, self.state.tables, self.cfg.max_sample_episodes)
-        table = self.state.tables[name]
         timeout = requests.timeout(msg, self.cfg.sample_timeout_s)
-        await self._wait(lambda: table.ready(n), timeout, f"sample {n} from {name}", "sample")
-        keys = self.state.choose(name, n, self.rng)
+        keys = await self._choose_within_budget(name, n, timeout, conn)
         if self.storage is not None:
-            self.storage.log_sample(name, keys)
+            try:
+                self.storage.log_sample(name, keys)
+            except WriteError as e:  # served anyway; see storage's guarantee
+                self.unlogged_samples += 1
+                log.warning("sample from %s served without its log record: %s", name, e)
         eps = self.state.apply_sample(name, keys)
         self.metrics.samples.labels(table=name).inc(len(eps))
         self._update_sizes()
         await self._notify()
         return self._ok(episodes=[codec.episode_to_wire(ep) for ep in eps])
+
+    async def _choose_within_budget(self, name: str, n: int, timeout: float, conn: Conn):
+        """Wait for the rate limiter, choose `n` keys, and take the reply's bytes from the
+        budget (held until the reply is written); when they do not fit, wait for room and
+        choose again. RequestError ``rate_limited`` when `timeout` passes first."""
+        assert self._budget is not None
+        table = self.state.tables[name]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            left = max(deadline - loop.time(), 0.0)
+            await self._wait(lambda: table.ready(n), left, f"sample {n} from {name}", "sample")
+            keys = self.state.choose(name, n, self.rng)
+            size = sum(reply_bytes(self.state.episodes[k]) for k in keys)
+            if size > self._budget.per_key:
+                raise RequestError(
+                    "bad_request",
+                    f"a sample of {n} episodes from {name} is {size} bytes, above "
+                    f"max_inflight_bytes_per_client={self._budget.per_key}: ask for fewer",
+                )
+            if self._budget.try_take(size, conn.client):
+                conn.reply_bytes = size
+                return keys
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await self._budget.wait_room(size, conn.client)
+            except TimeoutError:
+                raise RequestError(
+                    "rate_limited",
+                    f"sample {n} from {name}: replies in flight held max_inflight_bytes "
+                    f"for {timeout:g} s",
+                ) from None
 
     async def _wait(self, ready, timeout: float, what: str, op: str) -> None:
         """Wait until `ready()` (the rate limiter allows `op`), counting held-back requests."""
@@ -354,44 +385,6 @@ class BufferServer:
         async with self._changed:
             self._changed.notify_all()
 
-    def _maybe_snapshot(self) -> None:
-        """Start a snapshot in the background when enough inserts were logged since the last."""
-        every, st = self.cfg.snapshot_every_inserts, self.storage
-        due = st is not None and every and st.records_since_snapshot >= every
-        if due and self._snapshotting is None:
-            self._start_snapshot()
-
-    def _start_snapshot(self) -> asyncio.Future:
-        """Switch the log and copy the state's references here, on the loop (cheap); write
-        the file in a thread. Requests go on meanwhile: the inserts they log go to the new
-        log, so nothing waits for the snapshot to finish."""
-        assert self.storage is not None and self._snapshotting is None
-        job = self.storage.begin_snapshot(self.state)
-        fut = asyncio.ensure_future(asyncio.to_thread(job.write))
-        self._snapshotting = fut
-        fut.add_done_callback(self._snapshot_done)
-        return fut
-
-    def _snapshot_done(self, fut: asyncio.Future) -> None:
-        if self._snapshotting is fut:
-            self._snapshotting = None
-        if not fut.cancelled() and fut.exception() is not None:
-            log.error("snapshot failed (the logs still hold everything): %s", fut.exception())
-        elif self._server is not None and self._server.is_serving():
-            self._maybe_snapshot()  # became due while this one was written
-
-    async def _snapshot(self) -> str:
-        """Snapshot now, after the one in progress if any; returns its path."""
-        while self._snapshotting is not None:
-            running = self._snapshotting
-            await asyncio.gather(running, return_exceptions=True)
-            if self._snapshotting is running:
-                self._snapshotting = None
-        try:
-            return await asyncio.shield(self._start_snapshot())
-        except OSError as e:
-            raise RequestError("internal", f"snapshot failed: {e}") from None
-
     def _update_sizes(self) -> None:
         for name, t in self.state.tables.items():
             self.metrics.size.labels(table=name).set(len(t))
@@ -410,4 +403,8 @@ class BufferServer:
         st["generation"] = self.storage.gen if self.storage else None
         st["log_inserts"] = self.storage.written if self.storage else 0
         st["log_fsyncs"] = self.commits.fsyncs if self.commits else 0
+        st["log_bytes"] = self.storage.size if self.storage else 0
+        st["unlogged_samples"] = self.unlogged_samples
+        assert self._budget is not None
+        st["inflight_bytes"] = self._budget.used
         return st

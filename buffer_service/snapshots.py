@@ -26,12 +26,12 @@ def snapshot_problem(scan: Scan) -> str | None:
         return "is damaged: " + describe(scan)
     if scan.torn:
         return f"is cut short at offset {scan.torn[0]}"
-    kinds = [r.kind for r in scan.records]
-    if not kinds or HEADER not in kinds[:2] or kinds[-1] != END:
+    last = scan.last
+    if last is None or HEADER not in scan.head_kinds or last.kind != END:
         return "incomplete (no header or no end record)"
     if scan.format == 2:
-        held = kinds.count(EPISODE)
-        if kinds[0] != FILE or scan.records[-1].meta.get("episodes") != held:
+        held = scan.kinds.get(EPISODE, 0)
+        if scan.head_kinds[0] != FILE or last.meta.get("episodes") != held:
             return f"is incomplete ({held} episode records, the end record disagrees)"
     return None
 
@@ -71,5 +71,8 @@ class SnapshotJob:
         st._fsync_dir()
         previous, st.base = st.base, self.gen
         st._retain({self.gen, previous}, previous)  # the previous one stays as a fallback
+        if st.commit.fd is not None:
+            st.sync_retired()
+            st.write_marks(sync=True)  # without the marks of the logs just removed
         log.info("snapshot %s: %d episodes", final, len(self.copy.episodes))
         return final

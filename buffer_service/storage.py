@@ -9,6 +9,23 @@ record is still written (handed to the kernel) before the ack, which survives a 
 the process but not a power loss. Sample records (which episodes were sampled, so a cycling
 table's at-most-K count and retirements survive too) are written but not fsynced: after a
 power loss an episode may be served a few more times than K, never lost or duplicated.
+The exact guarantee per setting, with the commit file (`buffer_service.commit`):
+
+* ``fsync=True``: an acknowledged insert's record was fsynced (with every record before
+  it) and its high-water mark written to ``commit.bin``. It survives kill -9, a kernel
+  crash and a power loss. A log later cut short or deleted (before its mark) is refused at
+  restart and by `credit buffer verify`, naming the file and the episodes missing; after a
+  power loss the mark itself may be a few commits old (it is fsynced per log generation,
+  not per commit), so only then can a cut within those last commits go unnoticed.
+* ``fsync=False``: an acknowledged insert's record and its mark were written (to the page
+  cache): it survives kill -9 of the service, not a kernel crash or power loss, and after
+  one the restart refuses (rightly: acknowledged episodes are gone) until told to accept it.
+
+Disk full: an append that cannot be written completely is truncated back to the end of the
+last complete record before anything is acknowledged (`WriteError`, code ``storage_full``),
+so the log never holds a partial record in front of later ones; once space returns appends
+go on after it. A failed fsync is not retried (the kernel may have dropped the pages): the
+storage refuses every write until the service is restarted.
 
 Files in ``snapshot_dir`` (record format: `buffer_service.records`), all created 0644::
 
@@ -22,12 +39,14 @@ snapshot falls back to the previous one plus the logs; older generations are rem
 at any point leaves a folder that restores completely: restart removes ``*.tmp`` files and
 generations that are no longer needed.
 
-Restore reads the newest intact snapshot (or, failing that, an older one or the empty state
+Restore reads files record by record (memory: the largest record, not the file), the newest
+intact snapshot (or, failing that, an older one or the empty state
 when every log from generation 0 is still there) and replays the logs after it. A record that
 is damaged (checksum, unreadable header; see `records`) is reported with its file and offset
 and skipped, and the records after it are still read. The service refuses to start when
 anything acknowledged may be missing (damaged records, no usable snapshot), naming the files,
-unless started with ``repair``: then it keeps what can be read, says what it discarded,
+or a log is shorter than its high-water mark or missing, unless started with ``repair``
+(accepting the loss): then it keeps what can be read, says what it discarded,
 renames the damaged files ``*.damaged`` and writes a fresh snapshot. A torn tail (an append
 cut short by a crash, never acknowledged) is truncated with a warning. Format-1 folders
 (before checksummed headers) are read and converted by a snapshot at once.
@@ -36,56 +55,47 @@ cut short by a crash, never acknowledged) is truncated with a warning. Format-1 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import os
 import re
 import threading
-from dataclasses import dataclass, field
 from typing import Any
 
-from buffer_service import codec, records
-from buffer_service.codec import CodecError
+from buffer_service import commit, records
 from buffer_service.config import TableConfig
-from buffer_service.episode import EpisodeError, EpisodeSchema
-from buffer_service.records import EPISODE, FILE, HEADER, INSERT, SAMPLE, SCHEMA, Scan
-from buffer_service.snapshots import FILE_MODE, SnapshotJob, describe, snapshot_problem
+from buffer_service.episode import EpisodeSchema
+from buffer_service.records import FILE, INSERT, SAMPLE, SCHEMA
+from buffer_service.restore import TEMP, RestoreMixin, StorageError
+from buffer_service.snapshots import FILE_MODE, SnapshotJob
 from buffer_service.state import BufferState
+
+__all__ = ["NAME", "TEMP", "Storage", "StorageError", "WriteError"]
 
 log = logging.getLogger(__name__)
 
 NAME = re.compile(r"^(snapshot|log)-(\d{8})\.bin$")
-TEMP = re.compile(r"^(snapshot|log)-(\d{8})\.bin\.tmp$")
 
 
-class StorageError(RuntimeError):
-    """The folder cannot be restored completely; the message names every damaged file."""
+class WriteError(RuntimeError):
+    """A write to the folder failed and was rolled back; `code` is ``storage_full`` (no space
+    or quota left) or ``internal``; nothing of the failed record stays in the log."""
+
+    def __init__(self, message: str, err: OSError | None = None) -> None:
+        super().__init__(message)
+        full = err is not None and err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+        self.code = "storage_full" if full else "internal"
 
 
-@dataclass
-class _Restore:
-    """What a restore found (see `Storage.restore`)."""
-
-    snaps: set[int]
-    logs: set[int]
-    top: int
-    base: int | None = None  # the snapshot restored from (0: the empty state)
-    replayed: list[int] = field(default_factory=list)
-    formats: set[int | None] = field(default_factory=set)
-    torn: Scan | None = None  # of the newest log
-    bad_snaps: list[int] = field(default_factory=list)
-    damaged_logs: list[int] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)  # recovered from elsewhere: nothing lost
-    losses: list[str] = field(default_factory=list)  # acknowledged data may be missing
-
-
-class Storage:
-    """Log and snapshots in one directory.
+class Storage(RestoreMixin):
+    """Log, snapshots and commit file in one directory.
 
     Args:
         directory: the snapshot dir (created if missing).
         fsync: fsync every insert record before it is acknowledged (the server's
             GroupCommit waits for it; this class only records and syncs).
-        repair: on restore, keep what can be read instead of refusing to start.
+        repair: on restore, keep what can be read instead of refusing to start (accepting
+            the loss of acknowledged episodes that are missing).
         tables: the table configs, recorded in every file (for `verify`).
         read_only: restore only (`credit buffer verify`): nothing is written, truncated,
             renamed or removed, and no log is opened.
@@ -109,11 +119,20 @@ class Storage:
         self.fd: int | None = None
         self.records_since_snapshot = 0
         self.written = 0  # insert records appended by this process (see append_insert)
+        self.size = 0  # bytes of the log being appended to (all complete records)
+        self.episodes = 0  # episodes its insert records carry
+        self.marks: commit.Marks = {}  # final (bytes, episodes) of the logs switched away from
+        self.failed: str | None = None  # why nothing more may be written (a failed fsync)
+        self.commit = commit.CommitFile(directory)
+        self._tail = (0, 0, 0, 0)  # (gen, written, size, episodes), replaced in one assignment
+        self._marked = self._tail  # the tail commit.bin records for the current log
         self._retired: list[int] = []  # logs switched away from, fsynced by the next sync
         self._dir_dirty = False  # a new log's directory entry awaits an fsync
         self._fd_lock = threading.Lock()  # `sync` (any thread) vs switching/closing the log
         if not read_only:
             os.makedirs(directory, exist_ok=True)
+
+    write_error = WriteError  # (for RestoreMixin)
 
     def path(self, kind: str, gen: int) -> str:
         return os.path.join(self.dir, f"{kind}-{gen:08d}.bin")
@@ -134,179 +153,13 @@ class Storage:
                 found[m.group(1)].add(int(m.group(2)))
         return found["snapshot"], found["log"]
 
-    # ---------------------------------------------------------------- restore
-
-    def restore(self, state: BufferState) -> dict[str, Any]:
-        """Load the newest usable snapshot and replay the logs after it into `state`; open the
-        log. Raises StorageError (naming files and offsets) when acknowledged data may be
-        missing, unless `repair`. Returns what was read (generations, counts, problems)."""
-        if not self.read_only:
-            self._remove_temp_files()
-        snaps, logs = self.generations()
-        r = _Restore(snaps=snaps, logs=logs, top=max(snaps | logs, default=0))
-        if snaps or logs:
-            self._read(state, r)
-        else:  # a new folder
-            r.base = 0
-        info = {"generation": r.top, "snapshot": r.base or None, "logs": r.replayed}
-        info |= {"episodes": len(state.episodes), "warnings": r.warnings, "losses": r.losses}
-        for w in r.warnings:
-            log.warning("%s: %s", self.dir, w)
-        if r.losses and not self.repair:
-            raise StorageError(
-                f"buffer folder {self.dir} cannot be restored completely: "
-                + "; ".join(r.losses)
-                + " (start with --repair to keep what can be read and discard the rest, or "
-                "inspect it with `credit buffer verify`)"
-            )
-        if not self.read_only:
-            for w in r.losses:
-                log.error("%s: --repair discards: %s", self.dir, w)
-            self._open_after_restore(state, r)
-            log.info("restored buffer from %s: %s", self.dir, info)
-        return info
-
-    def _read(self, state: BufferState, r: _Restore) -> None:
-        scan = self._choose_base(r)
-        if r.base is None:
-            r.losses.append("no intact snapshot with every log after it")
-            scan = self._best_effort_base(r)
-        if scan is not None:
-            self._load_snapshot(scan, state, r)
-            r.formats.add(scan.format)
-        for g in range(r.base, r.top + 1):
-            if g not in r.logs:
-                if not g == r.base == r.top:  # (format 1 made a snapshot's log after it)
-                    r.losses.append(f"log-{g:08d}.bin is missing")
-                continue
-            sc = self._replay_log(g, state, r)
-            r.replayed.append(g)
-            r.formats.add(sc.format)
-            if sc.torn:
-                r.torn = sc if g == r.top else r.torn
-                off, size = sc.torn
-                r.warnings.append(
-                    f"log-{g:08d}.bin: torn tail of {size} bytes at offset {off} (an append cut "
-                    "short by a crash, never acknowledged)"
-                )
-
-    def _choose_base(self, r: _Restore) -> Scan | None:
-        """The newest intact snapshot with every log after it, else 0 (the empty state) when
-        every log from log-0 on is there; sets r.base and returns the snapshot's scan."""
-        for s in sorted(r.snaps, reverse=True):
-            sc = records.scan_file(self.path("snapshot", s))
-            why = snapshot_problem(sc)
-            first = s if s < r.top else s + 1  # (format 1 made a snapshot's log after it)
-            if why is None and all(g in r.logs for g in range(first, r.top + 1)):
-                r.base = s
-                return sc
-            r.warnings.append(f"snapshot-{s:08d}.bin {why or 'lacks a later log'}; trying older")
-            if why is not None:
-                r.bad_snaps.append(s)
-        if all(g in r.logs for g in range(0, r.top + 1)):
-            r.base = 0
-        return None
-
-    def _best_effort_base(self, r: _Restore) -> Scan | None:
-        """No usable snapshot (repair): the newest one whose header can be read, else none."""
-        for s in sorted(r.snaps, reverse=True):
-            sc = records.scan_file(self.path("snapshot", s))
-            if any(rec.kind == HEADER for rec in sc.records):
-                if sc.damaged or sc.torn:
-                    r.losses.append(f"snapshot-{s:08d}.bin: {describe(sc) or 'cut short'}")
-                r.base = s
-                return sc
-        r.base = min(r.logs, default=0)
-        return None
-
-    def _load_snapshot(self, scan: Scan, state: BufferState, r: _Restore) -> None:
-        state.episodes = {}
-        header = None
-        for rec in scan.records:
-            if rec.kind == EPISODE:
-                try:
-                    ep = codec.own(codec.episode_from_wire(codec.unpack(rec.body)))
-                except CodecError as e:
-                    r.losses.append(f"snapshot-{r.base:08d}.bin offset {rec.offset}: {e}")
-                    continue
-                state.episodes[ep.key] = ep
-            elif rec.kind == HEADER and header is None:
-                header = rec.meta
-        state.load_header(header)
-        state.rebuild_refs()
-
-    def _replay_log(self, gen: int, state: BufferState, r: _Restore) -> Scan:
-        name = f"log-{gen:08d}.bin"
-        sc = records.scan_file(self.path("log", gen))
-        if sc.damaged:
-            r.losses.append(f"{name}: damaged records: {describe(sc)}")
-            r.damaged_logs.append(gen)
-        for rec in sc.records:
-            try:
-                self._apply(rec, state)
-            except (CodecError, EpisodeError, KeyError, TypeError, ValueError) as e:
-                r.losses.append(f"{name}: record at offset {rec.offset} is unreadable: {e}")
-                r.damaged_logs.append(gen)
-        self.records_since_snapshot = len(sc.records)
-        return sc
-
-    @staticmethod
-    def _apply(rec: records.Record, state: BufferState) -> None:
-        if rec.kind == INSERT:
-            wires = codec.unpack(rec.body)["episodes"]
-            eps = [codec.own(codec.episode_from_wire(w)) for w in wires]
-            for ep in eps:  # all or nothing, as when it was inserted
-                if state.schema is not None:
-                    ep.validate(state.schema)
-            for ep in eps:
-                state.insert(ep, [t for t in rec.meta["tables"] if isinstance(t, str)])
-        elif rec.kind == SAMPLE:
-            if rec.meta["table"] in state.tables:
-                state.apply_sample(rec.meta["table"], [tuple(k) for k in rec.meta["keys"]])
-        elif rec.kind == SCHEMA:
-            state.schema = EpisodeSchema.from_dict(rec.meta)
-        elif rec.kind == FILE and state.schema is None and rec.meta.get("schema"):
-            state.schema = EpisodeSchema.from_dict(rec.meta["schema"])
-
-    def _open_after_restore(self, state: BufferState, r: _Restore) -> None:
-        """Open the log to append to; after a fallback, a repair or format-1 files, write a
-        fresh snapshot first; remove generations no longer needed."""
-        self.gen, self.base = r.top, r.base
-        if r.losses or r.bad_snaps or 1 in r.formats:
-            for s in r.bad_snaps:
-                self._set_aside(self.path("snapshot", s))
-            for g in set(r.damaged_logs):
-                self._set_aside(self.path("log", g))
-            self.snapshot(state)  # log top+1 and snapshot top+1
-            if r.losses:  # nothing older is restorable as it was: keep only the new one
-                self._retain({self.base}, self.base)
-            return
-        if r.torn is not None:
-            with open(self.path("log", r.top), "r+b") as f:
-                f.truncate(r.torn.intact_end)
-                os.fsync(f.fileno())
-        self._open_log(r.top, state.schema)
-        # The fallback to keep: the previous snapshot, or the empty state if log-0 is there.
-        from_zero = all(g in r.logs for g in range(0, r.base))
-        prev = max((s for s in r.snaps if s < r.base), default=0 if from_zero else r.base)
-        self._retain({r.base, prev}, prev)
-
-    def _set_aside(self, path: str) -> None:
-        if os.path.exists(path):
-            os.replace(path, path + ".damaged")
-            log.error("%s set aside as %s.damaged", path, os.path.basename(path))
-
-    def _remove_temp_files(self) -> None:
-        for name in os.listdir(self.dir):
-            if TEMP.match(name):
-                os.remove(os.path.join(self.dir, name))
-                log.info("removed %s, left by an interrupted snapshot", name)
-
     def _retain(self, snapshots: set[int], min_log: int) -> None:
         """Remove every snapshot not in `snapshots` and every log older than `min_log`."""
         snaps, logs = self.generations()
         doomed = [self.path("snapshot", g) for g in snaps - snapshots]
         doomed += [self.path("log", g) for g in logs if g < min_log and g != self.gen]
+        with self._fd_lock:
+            self.marks = {g: m for g, m in self.marks.items() if g >= min_log}
         for path in doomed:
             os.remove(path)
 
@@ -319,69 +172,136 @@ class Storage:
             "generation": gen,
             "tables": self.tables_meta,
             "schema": schema.to_dict() if schema else None,
+            "commit": commit.NAME,
         }
 
-    def _open_log(self, gen: int, schema: EpisodeSchema | None) -> int:
+    def _open_log(self, gen: int, schema: EpisodeSchema | None, episodes: int = 0) -> int:
+        """Append to log-`gen` from now on (a new one gets its FILE record; on a full disk
+        it is removed again and WriteError raised, the current log staying in use)."""
         path = self.path("log", gen)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, FILE_MODE)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, FILE_MODE)
+        except OSError as e:
+            raise WriteError(f"cannot create {path}: {e}", e) from None
         if os.fstat(fd).st_size == 0:
-            records.write(fd, FILE, self._file_meta("log", gen, schema))
+            try:
+                records.write(fd, FILE, self._file_meta("log", gen, schema))
+            except OSError as e:
+                os.close(fd)
+                os.remove(path)
+                raise WriteError(f"cannot start {path}: {e}", e) from None
+        size = os.fstat(fd).st_size
         with self._fd_lock:
             old, self.fd = self.fd, fd
             if old is not None:
                 self._retired.append(old)
+                self.marks[self.gen] = (self.size, self.episodes)
             if not self.fsync:
                 for f in self._retired:
                     os.close(f)
                 self._retired.clear()
             self._dir_dirty = True
+            self.gen, self.size, self.episodes = gen, size, episodes
+            self._tail = (gen, self.written, size, episodes)
         return fd
 
-    def append_insert(self, tables: list[str], body: bytes | bytearray) -> int:
-        """Append an insert request (its raw, already validated frame body), handed to the
-        kernel but not fsynced; returns its number, durable once `synced` reaches it."""
+    def _append(self, kind: bytes, meta: Any, body: bytes | bytearray = b"") -> None:
+        """Append one record, or none of it: a failed write is truncated away (WriteError)."""
+        if self.failed:
+            raise WriteError(f"{self.dir}: no more writes: {self.failed}")
         assert self.fd is not None
-        records.write(self.fd, INSERT, {"tables": tables}, body)
+        start = self.size
+        try:
+            n = records.write(self.fd, kind, meta, body)
+        except OSError as e:
+            try:
+                os.ftruncate(self.fd, start)
+            except OSError as e2:
+                self.failed = f"a failed append could not be rolled back ({e2}); restart"
+                raise WriteError(f"{self.dir}: {e}; {self.failed}", e) from None
+            name = f"log-{self.gen:08d}.bin"
+            log.warning("%s: append failed (%s); rolled back to byte %d", name, e, start)
+            raise WriteError(f"{name}: {e.strerror or e}: nothing stored", e) from None
+        self.size = start + n
+
+    def append_insert(self, tables: list[str], body: bytes | bytearray, episodes: int = 0) -> int:
+        """Append an insert request (its raw, already validated frame body, carrying
+        `episodes`), handed to the kernel but not fsynced; returns its number, durable once
+        `sync` reaches it. WriteError when it could not be written (then nothing was)."""
+        self._append(INSERT, {"tables": tables}, body)
         self.records_since_snapshot += 1
         self.written += 1
+        self.episodes += episodes
+        self._tail = (self.gen, self.written, self.size, self.episodes)
+        if not self.fsync:  # acknowledged once written: so is its mark
+            self.write_marks(tail=self._tail)
         return self.written
 
-    def sync(self) -> int:
-        """fsync the log (and a log switched away from since, and the folder after a switch);
-        returns the number of the last insert record now durable. Safe to call from another
-        thread while records are appended."""
+    def write_marks(self, sync: bool = False, tail: tuple[int, int, int, int] | None = None):
+        """Record in commit.bin the logs' high-water marks: the current log's up to `tail`
+        (durable or, with fsync=False, written), else as last recorded; never lowered."""
         with self._fd_lock:
-            assert self.fd is not None
-            upto = self.written
-            for fd in self._retired:
-                os.fsync(fd)
-                os.close(fd)
-            self._retired.clear()
-            os.fsync(self.fd)
-            if self._dir_dirty:
-                self._fsync_dir()
-                self._dir_dirty = False
-            return upto
+            if tail is not None and tail[:3] > self._marked[:3]:
+                self._marked = tail
+            gen, _, size, episodes = self._marked
+            marks = dict(self.marks)
+            if gen not in marks:  # (a retired log's entry is its final size)
+                marks[gen] = (size, episodes)
+        self.commit.write(marks, sync=sync)
+
+    def sync(self) -> int:
+        """fsync the log (and a log switched away from since, and the folder after a switch),
+        then write the marks; returns the number of the last insert record now durable. Safe
+        to call from another thread while records are appended. WriteError when an fsync
+        failed: the storage then refuses every write until restarted."""
+        if self.failed:
+            raise WriteError(f"{self.dir}: no more writes: {self.failed}")
+        try:
+            with self._fd_lock:
+                assert self.fd is not None
+                tail = self._tail
+                self._sync_retired()
+                os.fsync(self.fd)
+                if self._dir_dirty:
+                    self._fsync_dir()
+                    self._dir_dirty = False
+            self.write_marks(tail=tail)
+        except OSError as e:
+            self.failed = f"fsync failed ({e}); restart the service"
+            raise WriteError(f"{self.dir}: {self.failed}", e) from None
+        return tail[1]
+
+    def _sync_retired(self) -> None:
+        for fd in self._retired:
+            os.fsync(fd)
+            os.close(fd)
+        self._retired.clear()
+
+    def sync_retired(self) -> None:
+        """fsync the logs switched away from (before their final marks are made durable)."""
+        with self._fd_lock:
+            self._sync_retired()
 
     def log_sample(self, table: str, keys: list[tuple[int, int]]) -> None:
-        """Append which keys a sample took (written, not fsynced)."""
-        assert self.fd is not None
-        records.write(self.fd, SAMPLE, {"table": table, "keys": [list(k) for k in keys]})
+        """Append which keys a sample took (written, not fsynced); WriteError when it could
+        not be (then nothing was)."""
+        self._append(SAMPLE, {"table": table, "keys": [list(k) for k in keys]})
+        self._tail = (self.gen, self.written, self.size, self.episodes)
 
     def log_schema(self, schema: EpisodeSchema) -> None:
-        assert self.fd is not None
-        records.write(self.fd, SCHEMA, schema.to_dict())
+        self._append(SCHEMA, schema.to_dict())
+        self._tail = (self.gen, self.written, self.size, self.episodes)
         self.sync()
 
     # ---------------------------------------------------------------- snapshots
 
     def begin_snapshot(self, state: BufferState) -> SnapshotJob:
         """Start generation g+1: copy the state's references and switch the log (cheap; on
-        the event loop). The returned job's `write` produces the snapshot file (any thread)."""
+        the event loop). The returned job's `write` produces the snapshot file (any thread).
+        WriteError when the new log cannot be started (the current one stays in use)."""
         copy = state.capture()
         new = self.gen + 1
         self._open_log(new, state.schema)
-        self.gen = new
         self.records_since_snapshot = 0
         return SnapshotJob(self, new, copy)
 
@@ -393,8 +313,12 @@ class Storage:
         with self._fd_lock:
             for fd in [*self._retired, self.fd]:
                 if fd is not None:
-                    if self.fsync:
+                    if self.fsync and not self.failed:
                         os.fsync(fd)
                     os.close(fd)
             self._retired.clear()
             self.fd = None
+        if self.commit.fd is not None:
+            if not self.failed:
+                self.write_marks(sync=True)
+            self.commit.close()

@@ -1,5 +1,5 @@
-"""The learner's batches in `--mode cluster`: a main batch and, for E-CAC / EM-CAC, an extra
-batch from a second table, each of which the buffer service's limiter may hold back."""
+"""The learner's batches in both modes: a main batch and, for E-CAC / EM-CAC, an extra batch
+from a second table, either of which the tables' limiters may hold back."""
 
 from __future__ import annotations
 
@@ -9,15 +9,20 @@ from buffer_service.episode import EpisodeBatch
 from cluster.config.plan import DataPlan
 
 Sampler = Callable[[str, int], EpisodeBatch | None]
+Ready = Callable[[str, int], bool]
 
 
 class BatchPairer:
-    """Pairs the main and extra batches without wasting a sample of either.
+    """Pairs the main and extra batches without wasting a sample of either; `--mode local`
+    (`cluster.launch.local.LocalData`) and `--mode cluster` (`ServiceData`) both take their
+    batches through it.
 
-    The extra batch is sampled first and kept until a main batch arrives. A main batch is
-    requested only once an extra batch is in hand, so a held-back extra sample never costs
-    the cycling table's episodes one of their `max_times_sampled` samples, and a held-back
-    main sample never throws the extra batch away.
+    The main batch is sampled first and kept until its extra batch arrives, so a held-back
+    extra sample never throws a main batch away (nor costs the cycling table's episodes one
+    of their `max_times_sampled` samples). With `ready` (tables that can be asked whether
+    they would serve a sample, as the in-process tables can), nothing is sampled until both
+    tables would serve theirs, so no batch waits from one call to the next; the buffer
+    service can only be asked by sampling, and a main batch may wait there.
 
     Calling loop::
 
@@ -27,18 +32,26 @@ class BatchPairer:
             learner.step(*pair)
     """
 
-    def __init__(self, plan: DataPlan, sample: Sampler):
-        self.plan, self.sample = plan, sample
-        self.pending: EpisodeBatch | None = None  # an extra batch waiting for its main batch
+    def __init__(self, plan: DataPlan, sample: Sampler, ready: Ready | None = None):
+        self.plan, self.sample, self.ready = plan, sample, ready
+        self.pending: EpisodeBatch | None = None  # a main batch waiting for its extra batch
+        self.wanted = [(plan.table, plan.batch_size)]
+        if plan.extra_table:
+            self.wanted.append((plan.extra_table, plan.extra_batch_size))
 
     def next(self) -> tuple[EpisodeBatch, EpisodeBatch | None] | None:
-        plan = self.plan
-        if plan.extra_table and self.pending is None:
-            self.pending = self.sample(plan.extra_table, plan.extra_batch_size)
+        """The next (main, extra) pair (extra None without an extra table), or None."""
+        needed = self.wanted if self.pending is None else self.wanted[1:]
+        if self.ready is not None and not all(self.ready(t, n) for t, n in needed):
+            return None
+        if self.pending is None:
+            self.pending = self.sample(*self.wanted[0])
             if self.pending is None:
                 return None
-        batch = self.sample(plan.table, plan.batch_size)
-        if batch is None:
-            return None
-        extra, self.pending = self.pending, None
+        extra = None
+        if len(self.wanted) > 1:
+            extra = self.sample(*self.wanted[1])
+            if extra is None:
+                return None  # the main batch waits for it
+        batch, self.pending = self.pending, None
         return batch, extra

@@ -16,7 +16,9 @@ from cluster.commands import demo as demo_cmd
 from cluster.commands import env as env_cmd
 from cluster.commands import inspect as inspect_cmd
 from cluster.commands import metrics as metrics_cmd
+from cluster.commands import report as report_cmd
 from cluster.commands import repro as repro_cmd
+from cluster.commands import sweep as sweep_cmd
 from cluster.commands import train as train_cmd
 from cluster.config.schema import ConfigError
 from cluster.errors import UsageError
@@ -39,6 +41,8 @@ COMMANDS = [
     demo_cmd,
     train_cmd,
     repro_cmd,
+    report_cmd,
+    sweep_cmd,
     env_cmd,
     inspect_cmd,
     bench_cmd,

@@ -1,9 +1,11 @@
 """The one explicit env registry: id -> how to build the env (single and batched).
 
 Ids are "<family>/<name>" (`matrix/two_step`, later `skirmish/3m`, `smac/3m`). Nothing
-registers itself on import: every family is listed in `_families()` below. One family is
-parametrised and built on request instead of listed: `skirmish/bane_z<N>`, bane_vs_bane with
-N allied zerglings (the seed's redundancy variants with any N).
+registers itself on import: every family is listed in `_families()` below. Two kinds of id are
+built on request instead of listed: `skirmish/bane_z<N>`, bane_vs_bane with N allied
+zerglings (the dissertation's redundancy variants with any N), and the path of a skirmish map
+file a user wrote (`path/to/map.yaml`, any id ending in .yaml or .yml), which trains like a
+built-in map of the skirmish family.
 """
 
 from __future__ import annotations
@@ -11,13 +13,22 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from actors.envs.base import EnvError, EnvInfo, MultiAgentEnv, SerialVecEnv, VecEnv, env_info_of
 from actors.envs.matrix import make_four_game, make_two_step
-from actors.envs.skirmish import builtin_map, builtin_map_names, make_skirmish, make_skirmish_vec
+from actors.envs.skirmish import (
+    builtin_map,
+    builtin_map_names,
+    load_map_file,
+    make_skirmish,
+    make_skirmish_vec,
+)
 from actors.envs.skirmish.maps import BANE_VARIANT
 from actors.envs.smac_backend import SMAC_MAPS, make_smac_factory
+
+MAP_FILE_SUFFIXES = (".yaml", ".yml")  # an env id ending so is the path of a skirmish map file
 
 
 @dataclass(frozen=True)
@@ -53,17 +64,34 @@ def _families() -> list[EnvSpec]:
     return specs
 
 
-def _skirmish_map_spec(name: str) -> EnvSpec:
-    """`skirmish/<name>` for a built-in map (or a generated `bane_z<N>`)."""
+def _fixed_map_spec(env_id: str, where: dict[str, str], description: str) -> EnvSpec:
+    """An env of one skirmish map; `where` is make_skirmish's `map_name` or `map_file`, which
+    env arguments cannot change (skirmish/custom is the env that takes `map_file`)."""
+
+    def options_of(options: dict[str, Any]) -> dict[str, Any]:
+        taken = sorted({"map_file", "map_name"} & set(options))
+        if taken:
+            raise EnvError(
+                f"env {env_id!r} is one fixed map: drop the env argument(s) {taken} "
+                "(skirmish/custom takes map_file; or give the map file as the env)"
+            )
+        return options
 
     def make(seed: int | None = None, **options: Any) -> MultiAgentEnv:
-        return make_skirmish(seed, map_name=name, **options)
+        return make_skirmish(seed, **where, **options_of(options))
 
     def make_vec(num_envs: int, seed: int | None = None, **options: Any) -> VecEnv:
-        return make_skirmish_vec(num_envs, seed, map_name=name, **options)
+        return make_skirmish_vec(num_envs, seed, **where, **options_of(options))
 
+    return EnvSpec(env_id, make, make_vec, description)
+
+
+def _skirmish_map_spec(name: str) -> EnvSpec:
+    """`skirmish/<name>` for a built-in map (or a generated `bane_z<N>`)."""
     kind = "SMACv2-style randomised scenario" if builtin_map(name).randomised else "SMAC map"
-    return EnvSpec(f"skirmish/{name}", make, make_vec, f"skirmish simulator, {kind} {name}")
+    return _fixed_map_spec(
+        f"skirmish/{name}", {"map_name": name}, f"skirmish simulator, {kind} {name}"
+    )
 
 
 def _skirmish_specs() -> list[EnvSpec]:
@@ -86,6 +114,34 @@ def _skirmish_specs() -> list[EnvSpec]:
     return [_skirmish_map_spec(n) for n in builtin_map_names()] + [custom]
 
 
+def is_map_file(env_id: str) -> bool:
+    """Whether `env_id` is the path of a skirmish map file rather than a registered id."""
+    return env_id.endswith(MAP_FILE_SUFFIXES)
+
+
+def env_family(env_id: str) -> str:
+    """The family of an env id ("skirmish" for a map file): it picks the config layers."""
+    return "skirmish" if is_map_file(env_id) else env_id.partition("/")[0]
+
+
+def env_name(env_id: str) -> str:
+    """A short name of the env for file names and titles: the map file's stem, else the id
+    after its family (`skirmish/3m` -> "3m")."""
+    if is_map_file(env_id):
+        return Path(env_id).stem
+    return env_id.partition("/")[2] or env_id
+
+
+def _map_file_spec(path: str) -> EnvSpec:
+    """A map file as an env: read (and checked) here, so that a bad file fails before any
+    training with an EnvError naming the file and the field."""
+    try:
+        name = load_map_file(path).name
+    except (OSError, UnicodeDecodeError) as e:
+        raise EnvError(f"map file {path!r} cannot be read: {e}") from None
+    return _fixed_map_spec(path, {"map_file": path}, f"skirmish map file {path} (map {name})")
+
+
 REGISTRY: dict[str, EnvSpec] = {spec.id: spec for spec in _families()}
 
 
@@ -97,12 +153,15 @@ def get_spec(env_id: str) -> EnvSpec:
     """Return the spec of `env_id`; unknown ids raise EnvError listing the valid ones."""
     if env_id in REGISTRY:
         return REGISTRY[env_id]
+    if is_map_file(env_id):
+        return _map_file_spec(env_id)
     family, _, name = env_id.partition("/")
     if family == "skirmish" and BANE_VARIANT.fullmatch(name):
         return _skirmish_map_spec(name)  # generated on the fly (errors name the valid N)
     raise EnvError(
         f"unknown env {env_id!r}; valid envs: {', '.join(env_ids())}, "
-        "skirmish/bane_z<N> (bane_vs_bane with N allied zerglings)"
+        "skirmish/bane_z<N> (bane_vs_bane with N allied zerglings), or the path of a "
+        "skirmish map file (ending in .yaml or .yml)"
     )
 
 

@@ -13,6 +13,7 @@ from cluster.bench import env as env_bench
 from cluster.bench import learn as learn_bench
 from cluster.bench import matrix as matrix_bench
 from cluster.bench import memory as memory_bench
+from cluster.bench import open_loop as open_loop_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
 from cluster.bench import update as update_bench
@@ -27,6 +28,7 @@ BENCHES: list = [
     learn_bench,
     update_bench,
     memory_bench,
+    open_loop_bench,
 ]
 
 

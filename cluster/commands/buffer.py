@@ -22,6 +22,21 @@ TABLE_HELP = (
 )
 log = logging.getLogger(__name__)
 LIMITER_KEYS = {f.name for f in dataclasses.fields(RateLimiterConfig)}
+# --flag, BufferConfig field, type, the field's unit per the flag's, help (issue 40's limits)
+LIMITS = [
+    ("--snapshot-every-mb", "snapshot_every_bytes", float, 2**20,
+     "also snapshot once the log holds this many MiB (0 = no byte trigger)"),
+    ("--read-timeout", "read_timeout_s", float, 1,
+     "seconds to transfer a started request or reply; a client not taking its reply is cut off"),
+    ("--idle-timeout", "idle_timeout_s", float, 1,
+     "close an authenticated connection idle this many seconds (clients reconnect)"),
+    ("--max-connections-per-client", "max_connections_per_client", int, 1,
+     "authenticated connections one client id may hold"),
+    ("--max-inflight-mb", "max_inflight_bytes", float, 2**20,
+     "MiB of large requests and sample replies in flight over all connections"),
+    ("--max-inflight-per-client-mb", "max_inflight_bytes_per_client", float, 2**20,
+     "the share of --max-inflight-mb one client may hold"),
+]  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -97,8 +112,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--repair",
         action="store_true",
         help="start from what a damaged --snapshot-dir still holds, discarding (and naming) "
-        "what cannot be read, instead of refusing to start",
+        "what cannot be read and accepting acknowledged episodes found missing (a log cut "
+        "short or deleted), instead of refusing to start",
     )
+    for flag, field, kind, scale, text in LIMITS:
+        default = getattr(BufferConfig, field) / scale
+        s.add_argument(flag, type=kind, default=default, help=f"{text} (default {default:g})")
     s.add_argument("--metrics-port", type=int, help="Prometheus port on 127.0.0.1 (0 = any)")
     s.set_defaults(func=cmd_serve)
     v = add_command(
@@ -163,6 +182,12 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
         snapshot_dir=args.snapshot_dir,
         fsync=not args.no_fsync,
         snapshot_every_inserts=args.snapshot_every,
+        **{
+            field: type(getattr(BufferConfig, field))(
+                getattr(args, flag[2:].replace("-", "_")) * scale
+            )
+            for flag, field, _, scale, _ in LIMITS
+        },
         sample_timeout_s=args.sample_timeout,
         insert_timeout_s=args.insert_timeout,
         max_sample_episodes=args.max_sample,
@@ -177,7 +202,7 @@ def build_config(args: argparse.Namespace) -> BufferConfig:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from buffer_service.runner import run
-    from buffer_service.storage import StorageError
+    from buffer_service.storage import StorageError, WriteError
 
     try:
         cfg = build_config(args)
@@ -185,10 +210,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
         log.error("credit buffer serve: %s", e)
         return 2
     try:
-        run(cfg, port_file=args.port_file)
+        failed = run(cfg, port_file=args.port_file)
     except StorageError as e:
         log.error("credit buffer serve: refusing to start: %s", e)
         return 2
+    except WriteError as e:
+        log.error("credit buffer serve: cannot start: %s: %s", e.code, e)
+        return 2
+    except OSError as e:  # e.g. the port is taken, or the folder cannot be read
+        log.error("credit buffer serve: cannot start: %s", e)
+        return 2
+    if failed:
+        log.error("credit buffer serve: stopped without its final snapshot: %s", failed)
+        return 1
     return 0
 
 

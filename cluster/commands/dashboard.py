@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import logging
 from pathlib import Path
 
@@ -67,6 +68,13 @@ def _runs_targets() -> list[str]:
     return [f"{h}:{p}" for h, p in read_runs_sd()]  # re-read at every scrape
 
 
+def _run_dir(path: Path) -> Path | None:
+    """The run folder a run's own targets.json names (its "run" label), if any."""
+    groups = json.loads(path.read_text())
+    runs = {g.get("labels", {}).get("run") for g in groups if isinstance(g, dict)} - {None}
+    return Path(runs.pop()) if len(runs) == 1 else None
+
+
 def choose_source(args: argparse.Namespace, cfg: DashboardConfig) -> Source:
     """Pick where the charts read from (see the module docstring for the order)."""
     if args.prometheus:
@@ -81,7 +89,9 @@ def choose_source(args: argparse.Namespace, cfg: DashboardConfig) -> Source:
         if not path.is_file():
             raise ConfigError(f"--sd-file: {path} does not exist")
         _sd_targets(path)  # fail now, not in the scrape thread, if it is not file_sd JSON
-        return ExporterSource(functools.partial(_sd_targets, path), cfg, label=str(path))
+        return ExporterSource(
+            functools.partial(_sd_targets, path), cfg, label=str(path), run_dir=_run_dir(path)
+        )
     url = running_url(args.state_dir)
     if url:
         return PrometheusSource(url, cfg)

@@ -96,7 +96,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     # The charts keep the whole run (a few minutes) while the dashboard waits after it.
     dash_cfg = DashboardConfig(port=args.dashboard_port, range_s=900.0, history_s=1800.0)
     source = ExporterSource(
-        functools.partial(_targets, out / "targets.json"), dash_cfg, label="demo"
+        functools.partial(_targets, out / "targets.json"), dash_cfg, label="demo", run_dir=out
     )
     dashboard = DashboardServer(dash_cfg, source).start()
     print(f"live dashboard: {dashboard.url}", flush=True)

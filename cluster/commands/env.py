@@ -9,6 +9,9 @@ import logging
 from actors.envs.base import EnvError
 from actors.envs.registry import env_ids, env_info
 from actors.envs.skirmish.maps import BANE_VARIANT_MAX
+from actors.envs.skirmish.scripts import POLICIES
+from cluster.bench.common import emit
+from cluster.bench.skirmish_policies import BANE_MAPS, SANITY_MAPS, ladder
 from cluster.commands import add_command
 
 log = logging.getLogger(__name__)
@@ -37,13 +40,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     ren.add_argument("--env", default="skirmish/bane_vs_bane", help="a skirmish env id")
     ren.add_argument("--out", required=True, help="output .gif (or .png for a frame strip)")
-    ren.add_argument(
-        "--policy", default="nearest", help="random | focus_fire | nearest | bane_charge"
-    )
+    ren.add_argument("--policy", default="nearest", help=" | ".join(POLICIES))
     ren.add_argument("--seed", type=int, default=0)
     ren.add_argument("--max-steps", type=int, default=120)
     ren.add_argument("--map-file", default=None, help="map file for skirmish/custom")
     ren.set_defaults(func=cmd_render)
+    register_scripted(env_sub)
+
+
+def register_scripted(env_sub: argparse._SubParsersAction) -> None:
+    sc = add_command(
+        env_sub,
+        "scripted",
+        "Play scripted and random teams on skirmish maps and print their win rates as JSON"
+        " (--out also writes it); --set / --sweep change simulator options.",
+    )
+    sc.add_argument("--maps", nargs="+", default=BANE_MAPS + SANITY_MAPS, metavar="MAP",
+                    help="skirmish map names (e.g. bane_vs_bane bane_z5) or map files (.yaml, "
+                    ".yml); default: the four Table 5.1 maps and 3m, 8m, 2s3z")  # fmt: skip
+    sc.add_argument("--policy", nargs="+", default=None, metavar="POLICY",
+                    help=f"one or more of: {', '.join(POLICIES)} (default per map: bane_charge"
+                    " or focus_fire, nearest, random)")  # fmt: skip
+    sc.add_argument("--episodes", type=int, default=200, help="episodes per seed")
+    sc.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    sc.add_argument("--num-envs", type=int, default=100, help="battles stepped together")
+    sc.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a SkirmishConfig option for every row, e.g. bane_dodge=0.5")  # fmt: skip
+    sc.add_argument("--sweep", default=None, metavar="KEY=V1,V2,...",
+                    help="repeat every row for each value of one option")  # fmt: skip
+    sc.add_argument("--out", default=None, help="also write the JSON here")
+    sc.set_defaults(func=cmd_scripted)
 
 
 def env_rows() -> list[dict]:
@@ -103,4 +129,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         args.env, args.out, policy=args.policy, seed=args.seed, max_steps=args.max_steps, **kwargs
     )
     print(json.dumps(summary))
+    return 0
+
+
+def cmd_scripted(args: argparse.Namespace) -> int:
+    rows = ladder(args.maps, args.policy, args.episodes, args.seeds, args.set, args.sweep,
+                  args.num_envs)  # fmt: skip
+    emit("env_scripted", {"results": rows}, args.out)
     return 0

@@ -1,10 +1,13 @@
 """`credit inspect relevance --run DIR`: per-agent credit of a trained run (see
-cluster/inspect/relevance.py), as JSON, PNG and an animated GIF of one battle."""
+cluster/inspect/relevance.py), as JSON, PNG and an animated GIF of one battle;
+`credit inspect rdn-credit`: whether RDN's split credits agents for their own actions, while
+it trains (cluster/inspect/rdn_credit.py)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from cluster.commands import add_command
@@ -38,6 +41,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--max-frames", type=int, default=150, help="GIF frames at most (150)")
     r.add_argument("--out", help="output folder (default RUN/relevance)")
     r.set_defaults(func=cmd_relevance)
+    c = add_command(
+        isub,
+        "rdn-credit",
+        "Train RDN (seeds batched) and, at every evaluation, measure on a replay batch how "
+        "much each agent's LRP target moves with its own action against the critic; prints "
+        "one JSON line per evaluation and writes them to --out.",
+    )
+    c.add_argument("--env", default="skirmish/3m", help="env id or map file (skirmish/3m)")
+    c.add_argument("--seeds", type=int, default=3, help="seeds, batched in one trainer (3)")
+    c.add_argument("--t-max", type=int, default=60_000, help="env steps (60000)")
+    c.add_argument("--out", required=True, help="the JSON lines file to write")
+    c.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="config override"
+    )
+    c.set_defaults(func=cmd_rdn_credit)
 
 
 def cmd_relevance(args: argparse.Namespace) -> int:
@@ -52,4 +70,14 @@ def cmd_relevance(args: argparse.Namespace) -> int:
     )
     print(json.dumps({k: summary[k] for k in ("algo", "env", "credit", "win_rate", "groups")}))
     print(f"results in {out}: relevance.json, relevance.png, relevance.gif")
+    return 0
+
+
+def cmd_rdn_credit(args: argparse.Namespace) -> int:
+    from cluster.inspect.rdn_credit import run
+
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    lines = run(args.env, args.seeds, args.t_max, args.set, Path(args.out), print)
+    print(f"{lines} evaluations in {args.out}", file=sys.stderr)
     return 0

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
+from actors.envs.registry import env_name, is_map_file
 from cluster.commands import add_command
 from cluster.config.train import load_train_config
 from cluster.core import write_json
@@ -22,7 +23,9 @@ from cluster.repro import curves as repro_curves
 from cluster.repro import emcac as repro_emcac
 from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
+from cluster.repro import report as repro_report
 from cluster.repro import smac as repro_smac
+from cluster.repro.aggregate import REPS, curve_scores, matrix_scores, max_return
 from cluster.repro.fanout import FanOutConfig
 from learner.registry import ALGOS
 
@@ -59,6 +62,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="env steps per run (default: cluster/config/layers/envs/matrix.yaml)",
     )
     _add_run_options(m)
+    m.add_argument(
+        "--summarise-only",
+        action="store_true",
+        help="train nothing: rebuild summary.json, the plots and report.html from "
+        "OUT/evals/*.jsonl (curves.json, which holds RDN's diagnostics, is kept)",
+    )
     m.set_defaults(func=cmd_matrix)
     register_emcac(rsub)
 
@@ -106,10 +115,18 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+    m.add_argument(
+        "--bootstrap-reps",
+        type=int,
+        default=REPS,
+        help=f"bootstrap draws of each aggregate interval in summary.json (default {REPS})",
+    )
 
 
 def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
     """The run options of a repro command as a checked FanOutConfig (UsageError if bad)."""
+    if args.bootstrap_reps < 1:
+        raise UsageError(f"--bootstrap-reps must be >= 1, got {args.bootstrap_reps}")
     cfg = FanOutConfig(
         workers=args.workers,
         address=args.address or None,
@@ -185,7 +202,9 @@ def _register_curves(
 ) -> argparse.ArgumentParser:
     m = add_command(rsub, name, help_text)
     m.add_argument(
-        "--envs", default=",".join(experiment.ENVS), help="comma-separated skirmish/smac env ids"
+        "--envs",
+        default=",".join(experiment.ENVS),
+        help="comma-separated skirmish/smac env ids or paths of skirmish map files (.yaml)",
     )
     m.add_argument("--algos", default=",".join(experiment.ALGOS), help="comma-separated algorithms")
     m.add_argument(
@@ -232,6 +251,37 @@ def _check_algos(algos: list[str]) -> None:
             )
 
 
+def _custom_as_file(envs: list[str], sets: list[str]) -> tuple[list[str], list[str]]:
+    """`skirmish/custom` with `--set env.args.map_file=PATH` is the map file PATH given as an
+    env, so that it is named, logged and charted as one (and the override does not reach the
+    other envs). Returns the envs and the remaining overrides."""
+    key = "env.args.map_file="
+    files = [s.removeprefix(key) for s in sets if s.startswith(key)]
+    if not files or "skirmish/custom" not in envs:
+        return envs, sets
+    rest = [s for s in sets if not s.startswith(key)]
+    return [files[-1] if g == "skirmish/custom" else g for g in envs], rest
+
+
+def _check_env_names(envs: list[str], fan: FanOutConfig) -> None:
+    """Each env must name its own plot (a map file by its stem), and on a cluster a map file
+    must be given by its absolute path: the pairs run in other working directories."""
+    seen: dict[str, str] = {}
+    for g in envs:
+        if env_name(g) in seen and seen[env_name(g)] != g:
+            raise UsageError(
+                f"--envs: {seen[env_name(g)]!r} and {g!r} would share the plot name "
+                f"{env_name(g)!r}; rename one map file"
+            )
+        seen[env_name(g)] = g
+        if fan.address and is_map_file(g) and not Path(g).is_absolute():
+            raise UsageError(
+                f"--envs {g!r}: with --address give a map file by its absolute path (the "
+                "pairs run in other working directories; on other nodes the file must be at "
+                "that path too)"
+            )
+
+
 def cmd_curves(
     args: argparse.Namespace,
     name: str,
@@ -244,13 +294,15 @@ def cmd_curves(
     (which may add to the summary)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
+    envs, sets = _custom_as_file(envs, list(args.set))
     _check_algos(algos)
     if not algos or not envs:
         raise UsageError("--algos and --envs must name at least one algorithm and env")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
-    overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
+    _check_env_names(envs, fan)
+    overrides = sets + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
     t_max = 0
@@ -276,10 +328,13 @@ def cmd_curves(
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
     for g in envs:
-        plots.append(f"{experiment.PLOT_PREFIX}_{g.split('/', 1)[1]}.png")
+        plots.append(f"{experiment.PLOT_PREFIX}_{env_name(g)}.png")
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
     if figures is not None:
         plots += figures(curves, envs, out, summary)
+    best = {g: max_return(g, load_train_config(algos[0], g, [], overrides).env.args) for g in envs}
+    scores = curve_scores(curves, best, repro_curves.LAST)
+    _write_report(args, f"credit repro {name}", scores, summary, plots)
     write_json(out / "summary.json", summary)
     log.info("repro %s finished in %.0f s", name, time.monotonic() - started)
     for g in envs:
@@ -291,7 +346,7 @@ def cmd_curves(
                 f"{v['steps_to_50_smoothed']}/{v['steps_to_80_smoothed']}/"
                 f"{v['steps_to_95_smoothed']}  wall {v['wall_s']:.0f} s"
             )
-    print(f"results in {out}: summary.json, curves.json, evals/, " + ", ".join(plots))
+    print(f"results in {out}: summary.json, curves.json, report.html, evals/, " + ", ".join(plots))
     return 0
 
 
@@ -316,23 +371,38 @@ def cmd_matrix(args: argparse.Namespace) -> int:
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    curves = _run(
-        lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
-    )
+    if args.summarise_only:
+        curves = repro_matrix.load_evals(out / "evals", algos, games)
+        games = [g for g in games if any(c.game == g for c in curves)]
+        if not curves:
+            raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
+    else:
+        curves = _run(
+            lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+        )
+        (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     summary = repro_matrix.summarise(curves, optimum)
+    plots = [f"matrix_{g.split('/', 1)[1]}.png" for g in games]
+    for g, name in zip(games, plots, strict=True):
+        repro_matrix.plot(curves, g, out / name)
+    _write_report(args, "credit repro matrix", matrix_scores(curves, optimum), summary, plots)
     write_json(out / "summary.json", summary)
-    (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
-    for g in games:
-        repro_matrix.plot(curves, g, out / f"matrix_{g.split('/', 1)[1]}.png")
     log.info("repro matrix finished in %.0f s", time.monotonic() - started)
-    for a in algos:
+    for a in (a for a in algos if a in summary):
         cells = ", ".join(
             f"{g}: {v['optimal_runs']}/{v['runs']} optimal, median {v['final_return_median']:g}"
             for g, v in summary[a].items()
         )
         print(f"{a:8s} {cells}")
-    print(
-        f"results in {out}: summary.json, curves.json, "
-        + ", ".join(f"matrix_{g.split('/', 1)[1]}.png" for g in games)
-    )
+    made = "summary.json, " + ("" if args.summarise_only else "curves.json, ")
+    print(f"results in {out}: {made}report.html, " + ", ".join(plots))
     return 0
+
+
+def _write_report(args, title: str, scores, summary: dict, plots: list[str]) -> None:
+    """summary["aggregate"], the aggregate figures and report.html (`cluster.repro.report`)."""
+    out = Path(args.out)
+    figures = [(p, (out / p).read_bytes()) for p in plots]
+    repro_report.write_outputs(
+        out, f"{title}: {out}", scores, summary, figures, args.bootstrap_reps
+    )

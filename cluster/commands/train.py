@@ -1,24 +1,27 @@
 """`credit train`: train one algorithm on one env and write config, metrics, summary, checkpoint.
 
 Outputs under --out: config.yaml, metrics.jsonl (one JSON object per evaluation),
-summary.json and checkpoint/ (also refreshed every run.save_interval env steps).
+summary.json and checkpoint/ (also refreshed every run.save_interval env steps); with
+run.loggers, TensorBoard event files in tensorboard/ and a W&B run
+(`cluster.metrics.run_loggers`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 import yaml
 
+from actors.envs.registry import env_name, is_map_file
 from cluster.commands import add_command
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig, default_files, load_train_config, recipe_file
 from cluster.core import EvalRecord, write_json
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer
+from cluster.metrics.run_loggers import RunLoggers, check_installed
 from learner.common import NonFiniteLossError
 from learner.registry import ALGOS
 
@@ -28,7 +31,11 @@ log = logging.getLogger(__name__)
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     """Arguments shared by every command that builds a TrainConfig."""
     p.add_argument("--algo", help=f"algorithm, one of: {', '.join(sorted(ALGOS))} (default rdn)")
-    p.add_argument("--env", help="env id, see `credit env list` (default matrix/four_game)")
+    p.add_argument(
+        "--env",
+        help="env id, see `credit env list` (default matrix/four_game), or the path of a "
+        "skirmish map file (.yaml)",
+    )
     p.add_argument(
         "--config",
         action="append",
@@ -99,11 +106,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         )
     else:
         cfg = load_train_config(args.algo, args.env, args.config, _overrides(args))
-        name = f"{cfg.algo_name}_{cfg.env.id.replace('/', '-')}_s{cfg.run.seed}"
+        env = env_name(cfg.env.id) if is_map_file(cfg.env.id) else cfg.env.id.replace("/", "-")
+        name = f"{cfg.algo_name}_{env}_s{cfg.run.seed}"
         out = Path(args.out or Path("runs") / name)
     if args.print_config:
         print(config_text(cfg, args.config), end="")
         return 0
+    check_installed(cfg.run.loggers)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(config_text(cfg, args.config))
     if args.mode == "cluster":
@@ -154,13 +163,12 @@ def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:
     final evaluation at the last t_env if the schedule did not end on one."""
     core = trainer.core
     records: list[EvalRecord] = []
-    with open(out / "metrics.jsonl", "a" if append else "w") as metrics_file:
+    loggers = RunLoggers(core.cfg.run.loggers, out, core.cfg.to_yaml_dict(), append)
+    try:
 
         def on_eval(recs: list[EvalRecord]) -> None:
             records.extend(recs)
-            for r in recs:
-                metrics_file.write(json.dumps(r.as_json()) + "\n")
-            metrics_file.flush()
+            loggers.log(recs, core.take_metric_means())
 
         cfg = core.cfg
         log.info(
@@ -182,6 +190,8 @@ def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:
             raise NonFiniteLossError(f"training stopped: {e}; {kept}") from None
         if not records or records[-1].t_env != core.t_env:
             on_eval(core.evaluate())
+    finally:
+        loggers.close()
     return records
 
 

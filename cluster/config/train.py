@@ -13,7 +13,7 @@ from typing import Any, Literal
 import torch
 
 from actors.envs.base import EnvError
-from actors.envs.registry import get_spec
+from actors.envs.registry import env_family, get_spec, is_map_file
 from actors.policy import ExplorationConfig
 from buffer_service.config import DEFAULT_REPLAY_MAX_BYTES
 from cluster.config.schema import (
@@ -24,6 +24,7 @@ from cluster.config.schema import (
     read_yaml,
     to_dict,
 )
+from learner.rdn import drop_retired_keys
 from learner.registry import get_algo
 
 log = logging.getLogger(__name__)
@@ -36,7 +37,8 @@ class EnvConfig:
     """Which environment to train in.
 
     Attributes:
-        id: registered env id, e.g. matrix/four_game (see `credit env list`).
+        id: registered env id, e.g. matrix/four_game (see `credit env list`), or the path
+            of a skirmish map file (ending in .yaml or .yml), which trains as a skirmish map.
         args: keyword arguments of that env's factory (e.g. payoffs for matrix/four_game).
     """
 
@@ -49,8 +51,8 @@ class EnvConfig:
 
 @dataclass(frozen=True)
 class ReplayConfig:
-    """Episode replay of the value family (seed: 1000 episodes / batch 32 on SMAC, 200 / 4 on
-    the matrix games).
+    """Episode replay of the value family (the dissertation: 1000 episodes / batch 32 on SMAC,
+    200 / 4 on the matrix games).
 
     Attributes:
         capacity: episodes kept (oldest dropped).
@@ -86,8 +88,8 @@ class ReplayConfig:
 
 @dataclass(frozen=True)
 class CyclingConfig:
-    """EM-CAC's semi-online cycling buffer (seed 5.3.4: the last 32 episodes, 4 new per
-    training step). Each episode is sampled at most capacity / run.num_envs times.
+    """EM-CAC's semi-online cycling buffer (the dissertation, 5.3.4: the last 32 episodes, 4
+    new per training step). Each episode is sampled at most capacity / run.num_envs times.
 
     Attributes:
         capacity: episodes held; every policy-gradient step trains on all of them.
@@ -129,6 +131,9 @@ class RunConfig:
         max_policy_lag: drop sampled episodes more than this many versions behind the
             learner before an update, in both modes (0 = keep all; off-policy learners
             replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
+        loggers: where `credit train` logs each evaluation and the learner's losses
+            (`cluster.metrics.run_loggers`): "jsonl" (metrics.jsonl, always on),
+            "tensorboard" (event files in OUT/tensorboard/), "wandb" (Weights & Biases).
     """
 
     t_max: int = 2_000_000
@@ -142,6 +147,7 @@ class RunConfig:
     torch_threads: int = 1
     keep_freed_memory: bool = True
     max_policy_lag: int = 0
+    loggers: tuple[Literal["jsonl", "tensorboard", "wandb"], ...] = ("jsonl",)
 
     def validate(self) -> None:
         try:
@@ -162,6 +168,11 @@ class RunConfig:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
         if self.max_policy_lag < 0:
             raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
+        if "jsonl" not in self.loggers or len(set(self.loggers)) != len(self.loggers):
+            raise ValueError(
+                f"loggers must name jsonl (metrics.jsonl is the run's record) and each logger "
+                f"once, got {list(self.loggers)}"
+            )
 
 
 @dataclass(frozen=True)
@@ -213,6 +224,13 @@ class ClusterConfig:
 
 # The measured layers alone; any other recipe r adds the layer recipes/<algo>.<r>.yaml.
 SHIPPED_RECIPE = "shipped"
+# Older names of recipes, read as the name they have now (so old configs and commands work).
+RECIPE_ALIASES = {"seed": "dissertation"}
+
+
+def recipe_name(recipe: object) -> str:
+    """The current name of `recipe` (an alias in RECIPE_ALIASES gives the name it stands for)."""
+    return RECIPE_ALIASES.get(str(recipe), str(recipe))
 
 
 @dataclass(frozen=True)
@@ -281,9 +299,10 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     present: envs/<family>.<algo family>.yaml (what one algorithm family needs on that env
     family, e.g. the value family's measured settings on SMAC-like maps),
     envs/<family>.<algo>.yaml (what one algorithm needs on that env family, e.g. RDN's critic
-    targets on SMAC-like maps) and envs/<family>/<name>.yaml (what one map needs).
+    targets on SMAC-like maps) and envs/<family>/<name>.yaml (what one built-in map needs;
+    a user's map file, of the skirmish family, has no layer of its own).
     """
-    family, _, name = env_id.partition("/")
+    family, name = env_family(env_id), env_id.partition("/")[2]
     algo_family = get_algo(algo).family
     root = config_root()
     required = [root / "envs" / f"{family}.yaml", root / "algos" / f"{algo}.yaml"]
@@ -296,8 +315,9 @@ def default_files(algo: str, env_id: str) -> list[Traversable]:
     optional = [
         root / "envs" / f"{family}.{algo_family}.yaml",
         root / "envs" / f"{family}.{algo}.yaml",
-        root / "envs" / family / f"{name}.yaml",
     ]
+    if not is_map_file(env_id):  # a user's map file has no layer of its own
+        optional.append(root / "envs" / family / f"{name}.yaml")
     return required + [p for p in optional if p.is_file()]
 
 
@@ -319,9 +339,10 @@ def recipe_file(algo: str, recipe: str) -> Traversable | None:
         for p in (folder.iterdir() if folder.is_dir() else [])
         if p.name.startswith(f"{algo}.") and p.name.endswith(".yaml")
     )
+    aliases = [f"{old} (= {new})" for old, new in RECIPE_ALIASES.items() if new in known]
     raise ConfigError(
         f"recipe {recipe!r} is not a recipe of {algo}; valid recipes: "
-        + ", ".join([SHIPPED_RECIPE, *known])
+        + ", ".join([SHIPPED_RECIPE, *known, *aliases])
     )
 
 
@@ -347,7 +368,7 @@ def load_train_config(
         get_spec(env_id)
     except EnvError as e:
         raise ConfigError(f"env: {e}") from None
-    recipe = str(user.get("recipe", SHIPPED_RECIPE))
+    recipe = recipe_name(user.get("recipe", SHIPPED_RECIPE))
     layers = default_files(algo, env_id)
     extra = recipe_file(algo, recipe)
     data: dict[str, Any] = {}
@@ -363,11 +384,18 @@ def load_train_config(
 def moved_keys(data: dict[str, Any]) -> dict[str, Any]:
     """`data` with keys that moved read into their new place, so that the config.yaml of an
     older run still resumes: cluster.max_policy_lag (cluster mode only, before the one loop)
-    is run.max_policy_lag (both modes).
+    is run.max_policy_lag (both modes); RDN's retired keys are dropped where they hold what RDN
+    still computes (`learner.rdn.drop_retired_keys`).
 
     Raises:
         ConfigError: both names given, with different values.
     """
+    algo = data.get("algo")
+    if data.get("algo_name") == "rdn" and isinstance(algo, dict):
+        try:
+            data = {**data, "algo": drop_retired_keys(algo)}
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     cluster = data.get("cluster")
     if not isinstance(cluster, dict) or "max_policy_lag" not in cluster:
         return data
@@ -402,6 +430,6 @@ def build_train_config(data: dict[str, Any]) -> TrainConfig:
         name: build(cls, data.get(name) or {}, prefix=f"{name}.") for name, cls in SECTIONS.items()
     }
     algo_cfg = build(spec.config_cls, data.get("algo") or {}, prefix="algo.")
-    recipe = str(data.get("recipe", SHIPPED_RECIPE))
+    recipe = recipe_name(data.get("recipe", SHIPPED_RECIPE))
     recipe_file(spec.name, recipe)  # an unknown recipe is an error that lists the valid ones
     return TrainConfig(algo_name=spec.name, algo=algo_cfg, recipe=recipe, **built)

@@ -63,7 +63,7 @@ def dashboard() -> dict[str, Any]:
     return {
         "uid": "credit-live",
         "title": "credit — live training",
-        "description": "Actors, buffer service and learner of a credit run (DESIGN.md §5).",
+        "description": "Actors, buffer service and learner of a credit run (docs/design.md).",
         "tags": ["credit", "marl"],
         "timezone": "browser",
         "refresh": "5s",

@@ -91,8 +91,9 @@ class ScrapeHistory:
                 errors[target] = str(e)
         snap = Snapshot(time.time() if now is None else now, samples)
         with self._lock:
-            self._snaps.append(snap)
-            while self._snaps and self._snaps[0].t < snap.t - self.history_s:
+            if samples:  # nothing answered: keep the history (a finished run's stays shown)
+                self._snaps.append(snap)
+            while self._snaps and self._snaps[0].t < self._snaps[-1].t - self.history_s:
                 self._snaps.popleft()
             self.errors, self.last_targets = errors, targets
         return snap

@@ -2,13 +2,15 @@
 
 Each `Query` is both a PromQL expression (for Prometheus and Grafana) and a recipe the
 exporter-scraping mode evaluates itself (`cluster.dashboard.local`), so the two modes and the
-Grafana JSON show the same thing. Metric names come from DESIGN.md §5.
+Grafana JSON show the same thing. Metric names come from docs/design.md, "Metrics".
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
+
+from cluster.metrics.exporters import RUN_INFO_NAME
 
 Op = Literal["rate", "value", "hist_mean", "hist_quantile"]
 
@@ -64,6 +66,8 @@ class Panel:
     Attributes:
         y_min: the y axis always includes this value (0 for rates and counts); None = data only.
         y_max: the y axis always includes this value (1 for fractions); None = data only.
+        algos: the algorithms that feed this panel (() = every one); a run whose learner
+            names its algorithm (credit_run_info) gets only its own panels.
     """
 
     id: str
@@ -73,9 +77,33 @@ class Panel:
     description: str = ""
     y_min: float | None = 0.0
     y_max: float | None = None
+    algos: tuple[str, ...] = ()
+
+    def shown_for(self, algos: set[str]) -> bool:
+        """Whether a run of `algos` (empty: not known) shows this panel."""
+        return not self.algos or not algos or bool(algos & set(self.algos))
 
 
+RUN_INFO = RUN_INFO_NAME  # the learner's {algo, family} gauge (`LearnerMetrics`)
+
+# The learning panels first: what a learner's user looks at before anything else.
 PANELS: tuple[Panel, ...] = (
+    Panel(
+        "test_win_rate",
+        "Test win rate",
+        "fraction (0-1)",
+        (Query("value", "credit_test_win_rate", legend="win rate", agg="max"),),
+        "Fraction of greedy test episodes won.",
+        y_max=1.0,
+    ),
+    Panel(
+        "test_return",
+        "Test return",
+        "return",
+        (Query("value", "credit_test_return", legend="mean return", agg="max"),),
+        "Mean return of the greedy test episodes.",
+        y_min=None,
+    ),
     Panel(
         "env_steps",
         "Env steps/s per actor",
@@ -122,7 +150,8 @@ PANELS: tuple[Panel, ...] = (
             Query("hist_mean", "credit_policy_lag_versions", legend="mean"),
             Query("hist_quantile", "credit_policy_lag_versions", legend="p95", q=0.95),
         ),
-        "Learner version minus the version that collected each trained episode.",
+        "Learner version minus the version that collected each trained episode (replayed "
+        "episodes are thousands of versions old on long runs).",
     ),
     Panel(
         "learner_updates",
@@ -150,28 +179,13 @@ PANELS: tuple[Panel, ...] = (
         y_min=None,
     ),
     Panel(
-        "test_return",
-        "Test return",
-        "return",
-        (Query("value", "credit_test_return", legend="mean return", agg="max"),),
-        "Mean return of the greedy test episodes.",
-        y_min=None,
-    ),
-    Panel(
-        "test_win_rate",
-        "Test win rate",
-        "fraction (0-1)",
-        (Query("value", "credit_test_win_rate", legend="win rate", agg="max"),),
-        "Fraction of greedy test episodes won.",
-        y_max=1.0,
-    ),
-    Panel(
         "kl_masked",
         "KL-masked fraction (EM-CAC)",
         "fraction (0-1)",
         (Query("value", "credit_kl_masked_fraction", legend="masked", agg="max"),),
         "Fraction of timesteps whose advantage the KL mask zeroed.",
         y_max=1.0,
+        algos=("emcac",),
     ),
     Panel(
         "actor_restarts",

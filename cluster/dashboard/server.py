@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 from cluster.config.schema import ConfigError
 from cluster.dashboard import local
-from cluster.dashboard.panels import PANELS, Panel
+from cluster.dashboard.panels import PANELS, RUN_INFO, Panel
 from cluster.metrics.http import QuietHTTPServer
 from cluster.metrics.prometheus import query_range
 
@@ -80,6 +80,29 @@ class Source(Protocol):
 
     def series(self, panel: Panel, start: float, end: float) -> tuple[Series, list[str]]: ...
 
+    def run(self, start: float, end: float) -> dict[str, Any]:
+        """{"algos": [the run's algorithms], "ended": None or `ended_run`'s dict}."""
+        ...
+
+
+def ended_run(run_dir: Path | None, last_seen: float) -> dict[str, Any]:
+    """A run whose exporters all stopped answering: "finished" with its summary.json's
+    final numbers when it wrote one (its clean end), else "stopped" (killed or crashed)."""
+    path = run_dir / "summary.json" if run_dir is not None else None
+    if path is None or not path.is_file():
+        return {"state": "stopped", "last_seen": last_seen}
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {"state": "stopped", "last_seen": last_seen}
+    keys = ("algo", "env", "t_env", "wall_s", "final_test_return_mean", "final_test_won_mean")
+    return {
+        "state": "finished",
+        "last_seen": last_seen,
+        "finished_at": path.stat().st_mtime,
+        "summary": {k: summary.get(k) for k in keys},
+    }
+
 
 class PrometheusSource:
     """Panel series from PromQL range queries against `url`."""
@@ -109,6 +132,16 @@ class PrometheusSource:
                     out.append({"name": q.name_for(r["metric"]), "points": points})
         return out, errors
 
+    def run(self, start: float, end: float) -> dict[str, Any]:
+        try:
+            result = query_range(self.url, RUN_INFO, start, end, max(1.0, (end - start) / 30))
+        except (OSError, ValueError):
+            result = []
+        return {
+            "algos": sorted({r["metric"].get("algo", "") for r in result} - {""}),
+            "ended": None,
+        }
+
 
 class ExporterSource:
     """Panel series computed from direct scrapes of the exporters.
@@ -118,6 +151,8 @@ class ExporterSource:
         label: where the targets come from (shown on the page), e.g. the file-SD path.
         cfg: the dashboard settings (scrape interval, history, rate window).
         fetcher: target -> exposition text (default: HTTP GET /metrics).
+        run_dir: the run's folder (its summary.json tells a finished run from a stopped one
+            once no exporter answers).
     """
 
     def __init__(
@@ -126,9 +161,11 @@ class ExporterSource:
         cfg: DashboardConfig,
         fetcher: Callable[[str], str] = local.fetch,
         label: str = "",
+        run_dir: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.label = label
+        self.run_dir = run_dir
         self.history = local.ScrapeHistory(targets, cfg.history_s, fetcher)
         self._stop = threading.Event()
         self._thread = threading.Thread(
@@ -160,13 +197,30 @@ class ExporterSource:
         errors = [f"{t}: {e}" for t, e in sorted(self.history.errors.items())]
         return out, errors
 
+    def run(self, start: float, end: float) -> dict[str, Any]:
+        snaps = self.history.snapshots()
+        algos = set()
+        for snap in reversed(snaps):
+            algos = {dict(k[1]).get("algo", "") for k in snap.samples if k[0] == RUN_INFO}
+            if algos:
+                break
+        h = self.history
+        down = bool(snaps) and bool(h.last_targets) and set(h.errors) >= set(h.last_targets)
+        ended = ended_run(self.run_dir, snaps[-1].t) if down else None
+        return {"algos": sorted(algos - {""}), "ended": ended}
+
 
 def panels_payload(source: Source, range_s: float, now: float | None = None) -> dict[str, Any]:
-    """The JSON the page draws: every panel with its series over the last `range_s` seconds."""
+    """The JSON the page draws: the panels of the run's algorithm with their series over the
+    last `range_s` seconds (up to the run's last scrape once it has ended, whose end then
+    replaces the exporters' connection errors)."""
     end = time.time() if now is None else now
+    run = source.run(end - range_s, end)
+    if run["ended"] is not None:
+        end = min(end, run["ended"]["last_seen"] + 1.0)
     start = end - range_s
     panels, errors = [], []
-    for panel in PANELS:
+    for panel in (p for p in PANELS if p.shown_for(set(run["algos"]))):
         series, errs = source.series(panel, start, end)
         errors.extend(errs)
         panels.append(
@@ -185,7 +239,8 @@ def panels_payload(source: Source, range_s: float, now: float | None = None) -> 
         "start": start,
         "end": end,
         "panels": panels,
-        "errors": sorted(set(errors))[:20],
+        "run": run,
+        "errors": [] if run["ended"] is not None else sorted(set(errors))[:20],
     }
 
 

@@ -15,8 +15,8 @@ from torch.nn import functional as F
 
 from actors.envs.registry import make_env
 from buffer_service.episode import Episode, EpisodeBatch
-from learner.batch import TensorBatch, agent_inputs, obs_history
-from learner.lrp import agent_relevance, lrp_epsilon
+from learner.batch import TensorBatch, agent_inputs
+from learner.critic_inputs import obs_history
 from learner.networks import unroll
 from learner.rdn import RDNLearner
 
@@ -60,9 +60,8 @@ def diagnose(learner: RDNLearner, env_id: str, env_args: dict) -> list[dict]:
     e, b, t, n = tb.shape
     with torch.no_grad():
         hist = obs_history(tb.obs, learner.cfg.obs_window)
-        x = learner.critic_inputs(hist[:, :, :-1], tb.actions)
-        rel, q = lrp_epsilon(learner.critic, x, learner.cfg.lrp_eps, learner.cfg.lrp_rule)
-        shares = agent_relevance(rel, n).view(e, b, t, n)
+        shares, q = learner.shares(hist[:, :, :-1], tb.actions)
+        shares = shares.view(e, b, t, n)
         q = q.view(e, b, t)
         agent_q = unroll(learner.agent, agent_inputs(tb.obs, tb.actions, learner.info.n_actions))
     out = []
@@ -121,7 +120,7 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
         real = tb.mask.bool()
 
         def split(h: torch.Tensor, acts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            shares, q = learner.agent_targets(learner.critic_inputs(h, acts))
+            shares, q = learner.shares(h, acts)
             return shares.view(e, b, t, n), q.view(e, b, t)
 
         r0, q0 = split(hist, tb.actions)
@@ -148,13 +147,13 @@ def own_action_credit(learner: RDNLearner, batch: EpisodeBatch, seed: int = 0) -
             best_agent = agent_q[..., i, :].masked_fill(~ok, -1e10).argmax(-1)
             agree_agent.append((best_q == best_agent)[choosable].float())
         dq, dr = torch.cat(dq_all), torch.cat(dr_all)
-        flat = hist.reshape(e, b * t, n, -1)
+        flat = hist.dense().reshape(e, b * t, n, -1)
         perm = torch.randperm(b * t, generator=gen)
         do_all = []
         for i in range(n):
             h2 = flat.clone()
             h2[:, :, i] = flat[:, perm, i]
-            r2, _ = split(h2.view_as(hist), tb.actions)
+            r2, _ = split(h2.view(hist.shape), tb.actions)
             do_all.append((r2[..., i] - r0[..., i])[real])
         do = torch.cat(do_all)
     big = dq.abs() > 0.01

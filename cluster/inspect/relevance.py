@@ -30,7 +30,8 @@ from actors.rollout import RolloutWorker
 from buffer_service.episode import Episode, EpisodeBatch
 from cluster.config.train import TrainConfig, build_train_config
 from cluster.errors import UsageError
-from learner.batch import TensorBatch, agent_inputs, obs_history
+from learner.batch import TensorBatch, agent_inputs
+from learner.critic_inputs import obs_history
 from learner.networks import unroll
 from learner.registry import get_algo
 
@@ -135,7 +136,7 @@ def credit(cfg: TrainConfig, learner: Any, episodes: list[Episode]) -> dict[str,
     if cfg.algo_name == "rdn":
         with torch.no_grad():
             hist = obs_history(tb.obs, cfg.algo.obs_window)[:, :, :-1]
-            shares, q = learner.agent_targets(learner.critic_inputs(hist, tb.actions))
+            shares, q = learner.shares(hist, tb.actions)
         out["credit"] = shares.view(b, t, n).numpy()
         out["q_total"] = q.view(b, t).numpy()
     else:

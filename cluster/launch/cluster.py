@@ -21,6 +21,7 @@ from cluster.launch.ray_sides import RayActing, ServiceData
 from cluster.loop import TrainLoop, check_modes
 from cluster.metrics.exporters import LearnerMetrics
 from cluster.metrics.loop_stats import LoopStats
+from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,10 @@ class ClusterTrainer:
             repair=self.ccfg.buffer_repair,
             store_state=self.plan.store_state,
         )
-        self.metrics = LearnerMetrics() if self.ccfg.metrics else None
+        family = ALGOS[cfg.algo_name].family
+        self.metrics = (
+            LearnerMetrics(algo=cfg.algo_name, family=family) if self.ccfg.metrics else None
+        )
         self.stats = LoopStats()
         self.data = ServiceData(core, self.stats, self.buffer, self.metrics)
         self.acting = RayActing(core, self.out, self.buffer, self.stats, self.metrics)
@@ -83,10 +87,6 @@ class ClusterTrainer:
     @property
     def restarts(self) -> int:
         return self.acting.restarts
-
-    @property
-    def dropped_stale(self) -> int:
-        return self.stats.dropped_stale
 
     @property
     def stop_requested(self) -> bool:

@@ -13,6 +13,7 @@ from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
 from buffer_service.local import LocalBuffer
+from cluster.batches import BatchPairer
 from cluster.config.train import TrainConfig
 from cluster.core import EvalRecord, TrainerCore
 from cluster.loop import Pair, RateLimitDeadlockError, TrainLoop, check_modes, drop_stale
@@ -42,6 +43,7 @@ class LocalData:
             for k in range(core.E)
         ]
         self.update_credit = 0.0  # learner steps owed to the episodes inserted so far
+        self.pairer = BatchPairer(self.plan, self._take, self._ready)
 
     def insert(self, episodes: list, per_member: int) -> None:
         """Member k's episodes are episodes[k * per_member : (k + 1) * per_member]."""
@@ -76,21 +78,12 @@ class LocalData:
             yield pair
 
     def sample(self) -> Pair | None:
-        """The next learner batch (and extra batch) of every member, or None."""
-        plan = self.plan
-        if not all(b.ready(plan.table, plan.batch_size) for b in self.buffers):
-            return None
-        if plan.extra_table and not all(
-            b.ready(plan.extra_table, plan.extra_batch_size) for b in self.buffers
-        ):
-            return None
-        batch = self._take(plan.table, plan.batch_size)
-        if batch is None:
-            return None
-        extra = self._take(plan.extra_table, plan.extra_batch_size) if plan.extra_table else None
-        if plan.extra_table and extra is None:
-            return None
-        return batch, extra
+        """The next learner batch (and extra batch) of every member, or None: the one
+        `BatchPairer` of both modes, sampling only once every member's tables can serve."""
+        return self.pairer.next()
+
+    def _ready(self, table: str, n: int) -> bool:
+        return all(b.ready(table, n) for b in self.buffers)
 
     def _take(self, table: str, n: int) -> EpisodeBatch | None:
         limit, version = self.core.cfg.run.max_policy_lag, self.core.learner.updates

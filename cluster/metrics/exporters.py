@@ -1,4 +1,4 @@
-"""Prometheus metrics of the actors and the learner (DESIGN.md §5), defined once, here.
+"""Prometheus metrics of the actors and the learner (docs/design.md, "Metrics"), defined once, here.
 
 Every component owns its own `CollectorRegistry`, so several exporters (one per actor, one for
 the learner) can live in one process, as they do in `--mode local` and in tests. Everything is
@@ -36,15 +36,20 @@ from prometheus_client import (
 
 log = logging.getLogger(__name__)
 
-#: Loopback only unless a caller asks otherwise (DESIGN.md §4: bind 127.0.0.1 by default).
+#: Loopback only unless a caller asks otherwise (docs/design.md: bind 127.0.0.1 by default).
 
 #: Seconds per learner update: from a millisecond (tiny nets) to a minute (huge batches).
 # fmt: off
 UPDATE_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
                           1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 # fmt: on
-#: Versions between the policy that acted and the learner's current one.
-POLICY_LAG_BUCKETS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64, 128)
+#: Versions between the policy that acted and the learner's current one: 0, then 1, 2, 3, 4,
+#: 6, 8, 12, ... (each power of two and 1.5 times it) up to 2^20. Replayed episodes are
+#: thousands of versions old on long runs (a top bucket of 128 clamped every percentile
+#: there); past the top, PromQL's histogram_quantile answers the top bucket's bound.
+POLICY_LAG_BUCKETS = tuple(
+    sorted({0, 1, *(2**k for k in range(1, 21)), *(3 * 2**k for k in range(19))})
+)
 
 #: Every name a scrape of an actor or learner exporter can show (counters with `_total`).
 ACTOR_METRIC_NAMES = (
@@ -63,6 +68,9 @@ LEARNER_METRIC_NAMES = (
     "credit_kl_masked_fraction",
     "credit_actor_restarts_total",
 )
+#: The learner's credit_run_info{algo, family} = 1 when the launcher names the algorithm: what
+#: the dashboard picks its panels by (no chart of its own).
+RUN_INFO_NAME = "credit_run_info"
 #: The buffer service's names (defined in `buffer_service/metrics.py`, listed for the dashboards).
 BUFFER_METRIC_NAMES = (
     "credit_buffer_inserts_total",
@@ -129,10 +137,23 @@ class LearnerMetrics:
 
     Args:
         registry: registry to register in; a fresh one when None.
+        algo, family: the run's algorithm and its family ("value" or "pg"), exposed as
+            credit_run_info{algo, family} = 1 so that a dashboard shows the panels that
+            algorithm feeds (not exposed without algo).
     """
 
-    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+    def __init__(
+        self,
+        registry: CollectorRegistry | None = None,
+        algo: str | None = None,
+        family: str | None = None,
+    ) -> None:
         r = self.registry = registry if registry is not None else CollectorRegistry()
+        if algo is not None:
+            info = Gauge(
+                RUN_INFO_NAME, "The run's algorithm (value 1).", ["algo", "family"], registry=r
+            )
+            info.labels(algo=algo, family=family or "").set(1)
         self._updates = Counter(
             _counter_name("credit_learner_updates_total"), "Learner updates done.", registry=r
         )

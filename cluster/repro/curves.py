@@ -181,7 +181,7 @@ def load_evals(
     curves = []
     for env in envs:
         for algo in algos:
-            path = log_dir / f"{env.replace('/', '-')}__{algo}.jsonl"
+            path = log_dir / f"{Pair(algo, env).key}.jsonl"
             if not path.exists() or not path.read_text().strip():
                 continue
             rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]

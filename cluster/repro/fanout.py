@@ -48,8 +48,9 @@ class Pair:
 
     @property
     def key(self) -> str:
-        """File stem of the pair's evaluation log: `<env with - for />__<algo>`."""
-        return f"{self.env.replace('/', '-')}__{self.algo}"
+        """File stem of the pair's evaluation log: `<env with - for />__<algo>` (a map
+        file's absolute path without its leading /)."""
+        return f"{self.env.lstrip('/').replace('/', '-')}__{self.algo}"
 
     @property
     def label(self) -> str:

@@ -81,6 +81,25 @@ def run_pair(
     return Curve(algo, game, t_env, returns, time.monotonic() - started, diagnostics)
 
 
+def load_evals(log_dir: Path, algos: list[str], games: list[str]) -> list[Curve]:
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped;
+    no RDN diagnostics: those come from the trained learner, not the log)."""
+    curves = []
+    for game in games:
+        for algo in algos:
+            path = log_dir / f"{game.replace('/', '-')}__{algo}.jsonl"
+            rows = (
+                [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+                if (path.exists())
+                else []
+            )
+            if rows:
+                t_env = [r["t_env"] for r in rows]
+                returns = [r["returns"] for r in rows]
+                curves.append(Curve(algo, game, t_env, returns, float(rows[-1]["wall_s"])))
+    return curves
+
+
 def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
     """{algo: {game: {final_return_median, _q25, _q75, optimal_runs, runs}}}."""
     out: dict = {}

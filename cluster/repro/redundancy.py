@@ -4,7 +4,10 @@ the enemy always 20 zerglings and 4 banelings.
 
 Runs, logs and the per-map plots are `cluster.repro.curves`' (`credit repro redundancy`); this
 module names the maps and algorithms, turns `--zerglings 0,5,...` into generated maps
-(`skirmish/bane_z<N>`), and draws the seed's figures over all maps at once:
+(`skirmish/bane_z<N>`), and draws the dissertation's figures over all maps at once. A map
+file a user wrote (`--envs path/to/map.yaml`) takes part like a built-in map: named by its
+file stem in titles and plot names, and by its allied zerglings on the final chart (a map
+whose units are drawn every episode has no such number and stays off that chart).
 
 * redundancy_median.png (Fig. 5.6): per map, the median win rate over seeds with the 25-75%
   band, one line per algorithm;
@@ -12,8 +15,8 @@ module names the maps and algorithms, turns `--zerglings 0,5,...` into generated
 * redundancy_p75.png, redundancy_p25.png (Figs. 5.8, 5.9): the 75th and 25th percentiles;
 * redundancy_final.png (not in the seed): the final win rate (each seed's mean over its last
   10 evaluations; median and 25-75% over seeds) against the number of allied zerglings, a
-  line through the Table 5.1 maps and open squares for the generated ones; beside it the
-  final return the same way.
+  line through the Table 5.1 maps, open squares for the generated ones and open diamonds
+  for map files; beside it the final return the same way.
 
 Maps are ordered from the most redundant zerglings to the fewest, as in the seed's figures.
 `summary.json` gets a "redundancy" entry with every number these figures draw.
@@ -25,7 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from actors.envs.skirmish.maps import BANE_VARIANT, BANE_VARIANT_MAX, builtin_map
+from actors.envs.registry import env_name, is_map_file
+from actors.envs.skirmish import example_map_file
+from actors.envs.skirmish.maps import BANE_VARIANT, BANE_VARIANT_MAX, builtin_map, load_map_file
+from actors.envs.skirmish.spec import MapSpec
 from cluster.errors import UsageError
 from cluster.repro import smac as repro_smac
 from cluster.repro.curves import LAST, Curve
@@ -63,20 +69,48 @@ def zergling_envs(spec: str) -> list[str]:
     return out
 
 
-def zerglings_of(env: str) -> int:
-    """Allied zerglings of a bane map (`skirmish/<name>`)."""
-    spec = builtin_map(env.split("/", 1)[1])
+def map_of(env: str) -> MapSpec | None:
+    """The skirmish map of `env` (a built-in, a generated bane_z<N>, a user's map file, or
+    skirmish/custom's example map), or None for an env of another family."""
+    if is_map_file(env):
+        return load_map_file(env)
+    family, _, name = env.partition("/")
+    if family != "skirmish":
+        return None
+    return load_map_file(example_map_file()) if name == "custom" else builtin_map(name)
+
+
+def zerglings_of(env: str) -> int | None:
+    """Allied zerglings of a skirmish map, or None where the map does not fix them (units
+    drawn every episode, or not a skirmish map): such maps stay off the final chart."""
+    spec = map_of(env)
+    if spec is None or spec.team_gen is not None:
+        return None
     return sum(g.count for g in spec.allies if g.type == "zergling")
+
+
+def enemy_of(env: str) -> str | None:
+    """The enemy team of a fixed skirmish map, e.g. "20 zerglings + 4 banelings"."""
+    spec = map_of(env)
+    if spec is None or spec.team_gen is not None:
+        return None
+    return " + ".join(f"{g.count} {g.type}s" for g in spec.enemies)
 
 
 def generated(env: str) -> bool:
     """A map of `--zerglings` (`skirmish/bane_z<N>`), not one of Table 5.1's files."""
-    return BANE_VARIANT.fullmatch(env.split("/", 1)[1]) is not None
+    return not is_map_file(env) and BANE_VARIANT.fullmatch(env.partition("/")[2]) is not None
 
 
 def ordered(envs: list[str]) -> list[str]:
-    """Most allied zerglings first (the seed's left-to-right order); ties keep their order."""
-    return sorted(envs, key=lambda g: -zerglings_of(g))
+    """Most allied zerglings first (the dissertation's left-to-right order), maps without a
+    fixed number last; ties keep their order."""
+
+    def rank(env: str) -> int:
+        n = zerglings_of(env)
+        return -1 if n is None else n
+
+    return sorted(envs, key=lambda g: -rank(g))
 
 
 def curve_stats(c: Curve) -> dict:
@@ -95,12 +129,16 @@ def final_stats(curves: list[Curve], envs: list[str]) -> dict:
     the return under `return_*` (it separates the algorithms while none wins yet)."""
     out: dict = {}
     for env in ordered(envs):
+        if zerglings_of(env) is None:
+            continue
         for c in curves:
             if c.env != env:
                 continue
-            cell = out.setdefault(c.algo, {"env": [], "generated": [], "zerglings": []})
+            empty: dict = {"env": [], "generated": [], "map_file": [], "zerglings": []}
+            cell = out.setdefault(c.algo, empty)
             cell["env"].append(env)
             cell["generated"].append(generated(env))
+            cell["map_file"].append(is_map_file(env))
             cell["zerglings"].append(zerglings_of(env))
             for prefix, values in (("", c.won), ("return_", c.returns)):
                 per_seed = np.asarray(values, dtype=float)[-LAST:].mean(axis=0)
@@ -118,6 +156,7 @@ def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict
     envs = ordered([g for g in envs if any(c.env == g for c in curves)])
     summary["redundancy"] = {
         "zerglings": {g: zerglings_of(g) for g in envs},
+        "names": {g: env_name(g) for g in envs},  # of the plots: a map file's stem
         "curves": {g: {c.algo: curve_stats(c) for c in curves if c.env == g} for g in envs},
         "final": final_stats(curves, envs),
         "last_evaluations": LAST,
@@ -127,7 +166,9 @@ def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict
         files.append(f"{PLOT_PREFIX}_{key}.png")
         _plot_grid(summary["redundancy"]["curves"], envs, key, label, out / files[-1])
     files.append(f"{PLOT_PREFIX}_final.png")
-    _plot_final(summary["redundancy"]["final"], out / files[-1])
+    enemies = {enemy_of(g) for g in envs}
+    enemy = enemies.pop() if len(enemies) == 1 else None
+    _plot_final(summary["redundancy"]["final"], enemy, out / files[-1])
     return files
 
 
@@ -147,7 +188,9 @@ def _plot_grid(stats: dict, envs: list[str], key: str, label: str, path: Path) -
             if key == "median":
                 ax.fill_between(s["t_env"], s["p25"], s["p75"], alpha=0.2, color=colors[algo])
         seeds = "/".join(str(n) for n in sorted({s["seeds"] for s in stats[env].values()}))
-        ax.set_title(f"{env.split('/', 1)[1]} ({zerglings_of(env)} zerglings, {seeds} seeds)")
+        lings = zerglings_of(env)
+        count = "units drawn per episode" if lings is None else f"{lings} zerglings"
+        ax.set_title(f"{env_name(env)} ({count}, {seeds} seeds)")
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
         if key != "variance":
@@ -160,7 +203,7 @@ def _plot_grid(stats: dict, envs: list[str], key: str, label: str, path: Path) -
     plt.close(fig)
 
 
-def _plot_final(final: dict, path: Path) -> None:
+def _plot_final(final: dict, enemy: str | None, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,13 +213,15 @@ def _plot_final(final: dict, path: Path) -> None:
     for ax, prefix, label in ((axes[0], "", "win rate"), (axes[1], "return_", "return")):
         for algo, s in final.items():
             gen = np.asarray(s["generated"], dtype=bool)
-            # a line through the Table 5.1 maps; generated variants as open squares beside
-            # it (bane_z0 and bane_no_z both have 0 zerglings), unless only generated ones
-            line = ~gen if (~gen).any() else gen
+            files = np.asarray(s.get("map_file", [False] * len(gen)), dtype=bool)
+            # a line through the Table 5.1 maps; generated variants (open squares) and map
+            # files (open diamonds) beside it (bane_z0 and bane_no_z both have 0 zerglings);
+            # the line goes through the first kind present
+            groups = [(~gen & ~files, "o", ""), (gen, "s", ", generated bane_z<N>")]
+            groups.append((files, "D", ", map files"))
+            groups = [g for g in groups if g[0].any()]
             color = None
-            for keep, marker in ((line, "o"), (~line, "s")):
-                if not keep.any():
-                    continue
+            for i, (keep, marker, kind) in enumerate(groups):
                 x = np.asarray(s["zerglings"], dtype=float)[keep]
                 order = np.argsort(x, kind="stable")
                 med, lo, hi = (np.asarray(s[prefix + k])[keep][order] for k in LINE_STATS)
@@ -186,13 +231,13 @@ def _plot_final(final: dict, path: Path) -> None:
                     yerr=[med - lo, hi - med],
                     capsize=3,
                     color=color,
-                    marker=marker,
-                    ls="-" if marker == "o" else "none",
-                    mfc="none" if marker == "s" else None,
-                    label=algo if color is None else f"{algo}, generated bane_z<N>",
+                    marker="o" if i == 0 else marker,
+                    ls="-" if i == 0 else "none",
+                    mfc=None if i == 0 else "none",
+                    label=algo + ("" if i == 0 else kind),
                 )
                 color = bars.lines[0].get_color()
-        ax.set_xlabel("allied zerglings (the enemy: 20 zerglings + 4 banelings)")
+        ax.set_xlabel("allied zerglings" + (f" (the enemy: {enemy})" if enemy else ""))
         ax.set_ylabel(f"final {label} (last {LAST} evaluations)")
         ax.grid(alpha=0.3)
         ax.set_title(f"final {label}: median over seeds, bars 25-75%")

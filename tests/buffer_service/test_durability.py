@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from buffer_service import codec, records
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
 from buffer_service.runner import start_server_thread
@@ -38,7 +39,7 @@ def test_restore_from_log_without_snapshot(tmp_path):
     c.sample("cycling", 5)  # every cycling item sampled once (K = 2)
     c.close()
     srv.stop(snapshot=False)  # like a crash: only the log holds the state
-    assert sorted(os.listdir(tmp_path)) == ["log-00000000.bin"]
+    assert sorted(os.listdir(tmp_path)) == ["commit.bin", "log-00000000.bin"]
     srv, c = boot(tmp_path, snapshot_every_inserts=0)
     try:
         st = c.stats()
@@ -55,13 +56,13 @@ def test_restore_from_log_without_snapshot(tmp_path):
 def test_torn_last_record_is_dropped(tmp_path):
     srv, c = boot(tmp_path, snapshot_every_inserts=0)
     c.insert([make_episode(0, 0)])
-    c.insert([make_episode(0, 1)])
     c.close()
     srv.stop(snapshot=False)
     log_path = tmp_path / "log-00000000.bin"
-    size = log_path.stat().st_size
-    with open(log_path, "r+b") as f:  # a crash mid-append: cut the last record short
-        f.truncate(size - 17)
+    msg = {"op": "insert", "v": 1, "episodes": [codec.episode_to_wire(make_episode(0, 1))]}
+    record = b"".join(records.encode(records.INSERT, {"tables": ["cycling"]}, codec.pack(msg)))
+    with open(log_path, "ab") as f:  # a crash mid-append (never acknowledged): half a record
+        f.write(record[: len(record) // 2])
     srv, c = boot(tmp_path, snapshot_every_inserts=0)
     try:
         assert c.stats()["episodes_stored"] == 1
@@ -94,8 +95,8 @@ def test_snapshot_compacts_the_log(tmp_path):
     assert c.stats()["generation"] == g
     # the previous snapshot and its log stay as the fallback; older ones are gone
     names = [f"log-{g - 1:08d}.bin", f"log-{g:08d}.bin"]
-    names += [f"snapshot-{g - 1:08d}.bin", f"snapshot-{g:08d}.bin"]
-    assert sorted(os.listdir(tmp_path)) == names
+    names += [f"snapshot-{g - 1:08d}.bin", f"snapshot-{g:08d}.bin", "commit.bin"]
+    assert sorted(os.listdir(tmp_path)) == sorted(names)
     c.insert([make_episode(4, 7)])
     c.close()
     srv.stop(snapshot=False)

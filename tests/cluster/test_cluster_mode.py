@@ -18,6 +18,7 @@ from buffer_service.storage import Storage
 from cluster.launch import ray_cluster
 from tests.cluster.episodes import assert_same_first_episodes
 from tests.cluster.polling import wait_for
+from tests.cluster.test_run_loggers import assert_event_files_match_metrics
 
 ray = pytest.importorskip("ray", reason="cluster mode needs ray")
 
@@ -71,6 +72,7 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
     field by field in the two buffer folders (the service's, the local checkpoint's)."""
     common = ["--algo", "vdn", "--env", "matrix/two_step", "--seed", "3", "--t-max", "100"]
     common += [*BIG_REPLAY, "--set", "replay.batch_size=16"]
+    common += ["--set", "run.loggers=[jsonl,tensorboard]"]
     runs = {}
     for mode in ("local", "cluster"):
         out = tmp_path / mode
@@ -87,6 +89,9 @@ def test_cluster_outputs_match_local_mode(tmp_path, env):
     assert lines and all(
         {"t_env", "episode", "test_return_mean", "wall_s"} <= set(x) for x in lines
     )
+    # run.loggers: the same event files in both modes, matching each run's metrics.jsonl
+    tags = [set(assert_event_files_match_metrics(tmp_path / m)) for m in ("local", "cluster")]
+    assert tags[0] == tags[1]
     targets = json.loads((out / "targets.json").read_text())
     assert len(targets[0]["targets"]) == 3  # learner, the actor, buffer service
     assert all(t.startswith("127.0.0.1:") for t in targets[0]["targets"])

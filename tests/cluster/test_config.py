@@ -31,7 +31,7 @@ def test_overrides_win_and_are_typed():
         (["run.t_max=many"], "run.t_max: expected an integer, got 'many'"),
         (["algo.lr=-1"], "algo: lr must be > 0"),
         (["replay.batch_size=500"], "batch_size=500 exceeds capacity=200"),
-        (["algo.lrp_rule=magic"], "algo.lrp_rule: 'magic' is not one of"),
+        (["algo.agent_targets=magic"], "algo.agent_targets: 'magic' is not one of"),
         (["trainer.x=1"], "unknown config section 'trainer'"),
         (["run.seed"], "--set expects key=value"),
         (["exploration.epsilon_finish=2"], "epsilon_finish must be in [0, 1]"),
@@ -102,7 +102,6 @@ SEED_RDN = {
     "agent_lr_scale": 1.0,
     "obs_window": 4,
     "critic_agent_encoder": 0,
-    "split_actions": "taken",
 }
 
 
@@ -117,21 +116,34 @@ def test_rdn_ships_its_measured_settings_and_the_seed_recipe_is_one_key_away(env
     got = (shipped.algo.agent_targets, shipped.algo.td_lambda, shipped.algo.lr)
     assert got == ("counterfactual", 0.8, 1e-3)
     assert (shipped.algo.obs_window, shipped.algo.critic_agent_encoder) == (1, 64)
-    seed = load_train_config("rdn", env, [], ["recipe=seed"])
-    assert seed.recipe == "seed" and rdn_keys(seed.algo) == SEED_RDN
+    seed = load_train_config("rdn", env, [], ["recipe=dissertation"])
+    assert seed.recipe == "dissertation" and rdn_keys(seed.algo) == SEED_RDN
     # the recipe is a layer under the user's overrides, and it is recorded for resuming
-    mixed = load_train_config("rdn", env, [], ["recipe=seed", "algo.td_lambda=0.5"])
+    mixed = load_train_config("rdn", env, [], ["recipe=dissertation", "algo.td_lambda=0.5"])
     assert mixed.algo.td_lambda == 0.5 and mixed.algo.agent_targets == "taken"
     again = build_train_config(seed.to_yaml_dict())
     assert again == seed
     matrix = load_train_config("rdn", "matrix/four_game", [], [])
     assert rdn_keys(matrix.algo) == SEED_RDN
-    assert load_train_config("rdn", "matrix/four_game", [], ["recipe=seed"]).algo == matrix.algo
+    assert load_train_config("rdn", "matrix/four_game", [], ["recipe=dissertation"]).algo == (
+        matrix.algo
+    )
+
+
+def test_recipe_seed_is_an_alias_of_recipe_dissertation():
+    new = load_train_config("rdn", "skirmish/3m", [], ["recipe=dissertation"])
+    old = load_train_config("rdn", "skirmish/3m", [], ["recipe=seed"])
+    assert old == new and old.recipe == "dissertation"
+    # the config.yaml of a run made before the rename still resumes, under the new name
+    saved = {**new.to_yaml_dict(), "recipe": "seed"}
+    assert build_train_config(saved) == new
 
 
 def test_an_unknown_recipe_names_the_valid_ones():
     with pytest.raises(
-        ConfigError, match="'sead' is not a recipe of rdn; valid recipes: shipped, seed"
+        ConfigError,
+        match=r"'sead' is not a recipe of rdn; valid recipes: shipped, dissertation, "
+        r"seed \(= dissertation\)",
     ):
         load_train_config("rdn", "skirmish/3m", [], ["recipe=sead"])
     with pytest.raises(ConfigError, match=r"not a recipe of vdn; valid recipes: shipped$"):

@@ -9,6 +9,7 @@ import shutil
 import time
 import urllib.request
 
+import numpy as np
 import pytest
 
 from cluster.cli import main
@@ -197,3 +198,65 @@ def test_broken_sd_file_is_a_usage_error(tmp_path, capsys):
     bad.write_text("{nope")
     assert main(["dashboard", "--sd-file", str(bad), "--port", "0"]) == 2
     assert "t.json" in capsys.readouterr().err
+
+
+def test_policy_lag_percentiles_cover_thousands_of_versions():
+    learner = m.LearnerMetrics()
+    ep = mhttp.serve(learner.registry)
+    try:
+        source = ExporterSource(lambda: [f"{ep[0]}:{ep[1]}"], DashboardConfig(port=0))
+        source.history.scrape_once(now=1000.0)
+        lags = list(range(1000, 2001))  # replayed episodes 1000-2000 versions old
+        learner.record_policy_lag(lags)
+        source.history.scrape_once(now=1001.0)
+    finally:
+        mhttp.stop(ep)
+    panel = next(p for p in PANELS if p.id == "policy_lag")
+    got = {s["name"]: s["points"][-1][1] for s in source.series(panel, 990.0, 1002.0)[0]}
+    assert got["mean"] == pytest.approx(1500.0)
+    # bucket interpolation (1536, 2048] against the exact 95th percentile: within 5%
+    assert got["p95"] == pytest.approx(float(np.percentile(lags, 95)), rel=0.05)
+
+
+@pytest.mark.parametrize("algo, shown", [("qmix", False), ("emcac", True), (None, True)])
+def test_panels_follow_the_runs_algorithm(algo, shown):
+    learner = m.LearnerMetrics(algo=algo, family="pg" if algo == "emcac" else "value")
+    ep = mhttp.serve(learner.registry)
+    try:
+        source = ExporterSource(lambda: [f"{ep[0]}:{ep[1]}"], DashboardConfig(port=0))
+        source.history.scrape_once(now=1000.0)
+        payload = panels_payload(source, range_s=60, now=1000.5)
+    finally:
+        mhttp.stop(ep)
+    ids = [p["id"] for p in payload["panels"]]
+    assert ("kl_masked" in ids) is shown
+    assert ids[:2] == ["test_win_rate", "test_return"]  # the learning panels first
+    assert payload["run"]["algos"] == ([algo] if algo else [])
+
+
+@pytest.mark.parametrize("summary", [True, False])
+def test_an_ended_run_is_finished_or_stopped_not_connection_errors(tmp_path, summary):
+    learner = m.LearnerMetrics(algo="qmix", family="value")
+    ep = mhttp.serve(learner.registry)
+    source = ExporterSource(lambda: [f"{ep[0]}:{ep[1]}"], DashboardConfig(port=0), run_dir=tmp_path)
+    learner.record_test(12.5, 0.75)
+    source.history.scrape_once(now=1000.0)
+    assert panels_payload(source, range_s=60, now=1000.5)["run"]["ended"] is None
+    if summary:
+        final = {"algo": "qmix", "env": "skirmish/3m", "t_env": 5000, "wall_s": 61.0}
+        final |= {"final_test_return_mean": 12.5, "final_test_won_mean": 0.75}
+        (tmp_path / "summary.json").write_text(json.dumps(final))
+    mhttp.stop(ep)  # the run's process is gone: connection refused from now on
+    for k in range(1, 4):
+        source.history.scrape_once(now=1000.0 + k)
+    assert "Connection refused" in str(source.history.errors)
+    payload = panels_payload(source, range_s=60, now=5000.0)
+    ended = payload["run"]["ended"]
+    assert payload["errors"] == []  # the end explains the silence; no banner of errors
+    assert ended["state"] == ("finished" if summary else "stopped")
+    assert ended["last_seen"] == 1000.0 and payload["end"] == 1001.0  # charts end at the run
+    win = next(p for p in payload["panels"] if p["id"] == "test_win_rate")
+    assert win["series"][0]["points"] == [[1000.0, 0.75]]
+    if summary:
+        assert ended["summary"]["final_test_won_mean"] == 0.75
+        assert ended["summary"]["t_env"] == 5000

@@ -113,11 +113,17 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
             "cycling.capacity=8",
             "--set",
             "replay.batch_size=4",
+            "--bootstrap-reps",
+            "50",
         ]
     )
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary) == {"skirmish/3m"} and set(summary["skirmish/3m"]) == {"cac", "emcac"}
+    assert set(summary) == {"skirmish/3m", "aggregate"}
+    assert set(summary["skirmish/3m"]) == {"cac", "emcac"}
+    poi = summary["aggregate"]["metrics"]["win_rate"]["probability_of_improvement"]
+    assert list(poi) == ["cac > emcac"] and 0.0 <= poi["cac > emcac"]["p"] <= 1.0
+    assert (out / "report.html").stat().st_size > 0
     for cell in summary["skirmish/3m"].values():
         assert 0.0 <= cell["median_win_rate_last10"] <= 1.0
         assert 0.0 <= cell["mean_win_rate_last10"] <= 1.0
@@ -133,12 +139,13 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
     before = (out / "summary.json").read_text()
     (out / "summary.json").unlink()
     args = ["repro", "emcac", "--envs", "skirmish/3m", "--algos", "cac,emcac", "--out", str(out)]
-    assert main([*args, "--summarise-only"]) == 0
+    assert main([*args, "--summarise-only", "--bootstrap-reps", "50"]) == 0
     again = json.loads((out / "summary.json").read_text())
     for algo, cell in json.loads(before)["skirmish/3m"].items():
         for k, v in cell.items():
             if k != "wall_s":
                 assert again["skirmish/3m"][algo][k] == v, (algo, k)
+    assert again["aggregate"] == json.loads(before)["aggregate"]  # seeded: the same draws
 
 
 @pytest.mark.parametrize(

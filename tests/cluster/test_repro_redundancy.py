@@ -87,7 +87,7 @@ def test_summarise_only_with_t_max_cuts_every_pair_at_one_budget(tmp_path):
         ]
         (evals / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
     argv = ["repro", "redundancy", "--envs", "skirmish/bane_small,skirmish/bane_med"]
-    argv += ["--algos", "vdn", "--out", str(tmp_path), "--summarise-only"]
+    argv += ["--algos", "vdn", "--out", str(tmp_path), "--summarise-only", "--bootstrap-reps", "20"]
     assert main([*argv, "--t-max", "40000"]) == 0
     cut = json.loads((tmp_path / "summary.json").read_text())
     small = cut["skirmish/bane_small"]["vdn"]

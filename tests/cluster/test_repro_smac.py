@@ -12,7 +12,7 @@ def test_tiny_repro_smac_writes_summary_with_steps_to_95_and_plots(tmp_path, cap
     argv = ["repro", "smac", "--envs", "skirmish/3m", "--algos", "vdn,rdn", "--seeds", "2"]
     argv += ["--t-max", "600", "--test-interval", "300", "--out", str(out), "--workers", "1"]
     argv += ["--set", "run.test_episodes=2", "--set", "replay.batch_size=4"]
-    assert main(argv) == 0
+    assert main([*argv, "--bootstrap-reps", "50"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["skirmish/3m"]) == {"vdn", "rdn"}
     keys = {

@@ -13,7 +13,7 @@ from cluster.metrics import exporters as m
 ROOT = Path(__file__).resolve().parents[2]
 GRAFANA = ROOT / "deploy" / "grafana" / "credit.json"
 BUFFER_METRICS = ROOT / "buffer_service" / "metrics.py"
-# DESIGN.md §5's buffer metrics; used only until buffer_service/metrics.py exists, then its
+# The buffer metrics of docs/design.md; used only until buffer_service/metrics.py exists, then its
 # source is read instead.
 BUFFER_NAMES_FALLBACK = {
     "credit_buffer_inserts_total",

@@ -90,12 +90,3 @@ def test_unknown_algorithm_lists_valid_names():
         match="valid algorithms: cac, coma, ecac, emcac, iql, mcac, qmix, qmix_ns, rdn, vdn",
     ):
         get_algo("dqn")
-
-
-def test_rdn_joint_max_refuses_huge_joint_action_spaces():
-    from buffer_service.episode import EpisodeSchema
-    from learner.rdn import RDNConfig, RDNLearner
-
-    schema = EpisodeSchema(n_agents=8, obs_dim=4, state_dim=4, n_actions=14, max_t=10)
-    with pytest.raises(ValueError, match="joint_max would enumerate 14\\^8"):
-        RDNLearner(RDNConfig(next_action="joint_max"), schema)

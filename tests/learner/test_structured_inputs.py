@@ -1,26 +1,20 @@
 """The structured network inputs (the agents' `AgentInputs`, RDN's `ObsWindows` and
 `AgentBlocks`, `block_preactivation`, LRP's per-agent sums by `block_dot`) compute what the
-straightforward dense implementation computes.
-
-The straightforward versions are kept here, as they were before the optimisation: agent
-inputs and windows by concatenation, the critic input by concatenating one-hots, LRP-ε over
-the dense input, the unroll over the dense inputs."""
+straightforward dense implementation computes: the agents' inputs by concatenation and the
+step-by-step unroll (kept here), the critic's windows and input as `learner.rdn_reference`
+builds them."""
 
 import pytest
 import torch
 from torch.nn import functional as F
 
-from learner.batch import (
-    AgentBlocks,
-    AgentInputs,
-    ObsWindows,
-    agent_blocks,
-    agent_blocks_dense,
-    agent_inputs,
-    obs_history,
-)
-from learner.lrp import LRP_RULES, BlockRelevance, agent_relevance, lrp_epsilon
+from learner.batch import AgentInputs, agent_inputs
+from learner.critic_inputs import AgentBlocks, ObsWindows, agent_blocks, obs_history
 from learner.networks import MLP, AgentBlockLinear, AgentNet, unroll
+from learner.rdn_fast import agent_targets
+from learner.rdn_reference import critic_inputs as reference_critic_inputs
+from learner.rdn_reference import lrp_shares
+from learner.rdn_reference import obs_windows as reference_obs_history
 
 
 def reference_agent_inputs(obs: torch.Tensor, actions: torch.Tensor, a: int) -> torch.Tensor:
@@ -44,56 +38,8 @@ def reference_unroll(agent: AgentNet, inputs: torch.Tensor) -> torch.Tensor:
     return torch.stack(outs, dim=2)
 
 
-def reference_obs_history(obs: torch.Tensor, window: int) -> torch.Tensor:
-    pad = obs.new_zeros(*obs.shape[:2], window - 1, *obs.shape[3:])
-    padded = torch.cat([pad, obs], dim=2)
-    tp = obs.shape[2]
-    return torch.cat([padded[:, :, i : i + tp] for i in range(window)], dim=-1)
-
-
-def reference_critic_inputs(hist: torch.Tensor, actions: torch.Tensor, a: int) -> torch.Tensor:
-    e, b, tp, n, _ = hist.shape
-    ids = torch.eye(n).expand(e, b, tp, n, n)
-    x = torch.cat([hist, F.one_hot(actions, a).float(), ids], dim=-1)
-    return x.reshape(e, b * tp, -1)
-
-
-def _stabilise(z, eps):
-    return z + eps * torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
-
-
-def reference_lrp(mlp: MLP, x: torch.Tensor, eps: float, rule: str):
-    """LRP over the dense input, per feature (learner/lrp.py before AgentBlocks)."""
-    if rule == "grad_x_input":
-        xg = x.detach().requires_grad_(True)
-        out = mlp(xg).squeeze(-1)
-        (grad,) = torch.autograd.grad(out.sum(), xg)
-        return (grad * xg).detach(), out.detach()
-    with torch.no_grad():
-        acts = [x]
-        h = x
-        for layer in mlp.layers[:-1]:
-            h = F.relu(torch.baddbmm(layer.bias, h, layer.weight))
-            acts.append(h)
-        out = torch.baddbmm(mlp.layers[-1].bias, h, mlp.layers[-1].weight)
-        relevance = out
-        for layer, a in zip(reversed(mlp.layers), reversed(acts), strict=True):
-            z = torch.bmm(a, layer.weight)
-            if rule != "eps_nobias":
-                z = z + layer.bias
-            relevance = a * torch.bmm(relevance / _stabilise(z, eps), layer.weight.transpose(1, 2))
-        out = out.squeeze(-1)
-        if rule == "eps_residual":
-            weight = x.abs()
-            total = weight.sum(-1, keepdim=True)
-            share = torch.where(total > 0, weight / total.clamp_min(1e-12), 0.0)
-            relevance = relevance + (out - relevance.sum(-1)).unsqueeze(-1) * share
-    return relevance, out
-
-
 def _close(got: torch.Tensor, want: torch.Tensor, scale: float = 1e-5) -> None:
-    """float32 agreement up to summation order (LRP-ε without bias amplifies rounding near
-    z = 0, so the tolerance follows the values' size)."""
+    """float32 agreement up to summation order (the tolerance follows the values' size)."""
     tol = scale * (1.0 + float(want.detach().abs().max()))
     torch.testing.assert_close(got, want, atol=tol, rtol=1e-4)
 
@@ -123,19 +69,20 @@ def _mlp(e: int, d: int, seed: int = 0, encoder_agents: int = 0) -> MLP:
 
 
 @pytest.mark.parametrize("window", [1, 2, 4])
-def test_obs_history_holds_the_concatenated_windows_and_slices_stay_lazy(window):
+def test_obs_history_holds_the_concatenated_windows_and_slices_stay_windows(window):
     obs, _ = _batch()
     hist = obs_history(obs, window)
     ref = reference_obs_history(obs, window)
     assert isinstance(hist, ObsWindows) and hist.shape == ref.shape
-    torch.testing.assert_close(hist, ref, rtol=0, atol=0)
+    torch.testing.assert_close(hist.dense(), ref, rtol=0, atol=0)
     for sl in (slice(None, -1), slice(1, None), slice(2, 5), slice(-3, None)):
         part = hist[:, :, sl]
-        assert isinstance(part, ObsWindows)
-        torch.testing.assert_close(part, ref[:, :, sl], rtol=0, atol=0)
-        torch.testing.assert_close(part[:, :, 1:], ref[:, :, sl][:, :, 1:], rtol=0, atol=0)
-    assert type(hist[0]) is torch.Tensor  # any other indexing is dense
-    torch.testing.assert_close(hist[0], ref[0], rtol=0, atol=0)
+        assert isinstance(part, ObsWindows) and part.shape == ref[:, :, sl].shape
+        torch.testing.assert_close(part.dense(), ref[:, :, sl], rtol=0, atol=0)
+        twice = part[:, :, 1:].dense()
+        torch.testing.assert_close(twice, ref[:, :, sl][:, :, 1:], rtol=0, atol=0)
+    with pytest.raises(IndexError, match="lo:hi"):
+        hist[0]
 
 
 @pytest.mark.parametrize("encoder", [False, True], ids=["dense_first", "agent_encoder"])
@@ -161,31 +108,28 @@ def test_critic_forward_and_gradients_match_the_dense_input(window, part, encode
     torch.testing.assert_close(x.block_l1(), dense.abs().view(2, -1, 4, x.block).sum(-1))
 
 
-@pytest.mark.parametrize("rule", LRP_RULES)
-def test_lrp_of_agent_blocks_matches_lrp_of_the_dense_input(rule):
+@pytest.mark.parametrize("window", [1, 4])
+def test_the_shares_of_agent_blocks_are_the_references_on_the_dense_input(window):
     obs, actions = _batch(3)
-    window, a, n = 4, 4, 4
+    a, n = 4, 4
     hist = obs_history(obs, window)[:, :, :-1]
     x = agent_blocks(hist, actions[:, :, :-1], a, window)
-    dense = reference_critic_inputs(hist.contiguous(), actions[:, :, :-1], a)
+    dense = reference_critic_inputs(hist.dense(), actions[:, :, :-1], a)
     mlp = _mlp(2, dense.shape[-1], seed=1)
-    rel, q = lrp_epsilon(mlp, x, 0.01, rule)
-    rel_ref, q_ref = reference_lrp(mlp, dense, 0.01, rule)
-    assert isinstance(rel, BlockRelevance)
-    _close(q, q_ref)
-    _close(agent_relevance(rel, n), agent_relevance(rel_ref, n))
-    _close(rel.dense(), rel_ref)  # the per-feature values, if anyone asks for them
-    if rule == "eps_residual":  # conserves
-        _close(agent_relevance(rel, n).sum(-1), q)
+    got = agent_targets(mlp, x, actions[:, :, :-1].reshape(2, -1, n), None, 0.01, window * 5)
+    shares, q = lrp_shares(mlp, dense, n, 0.01)
+    _close(got.q, q)
+    _close(got.shares, shares)
+    _close(got.shares.sum(-1), q)  # conserves
 
 
 @pytest.mark.parametrize("build_c", [0.0, float("inf")])  # c summed / s gathered per pair
 @pytest.mark.parametrize("window", [1, 4])
 def test_block_dot_is_each_agents_dense_contribution_dotted_with_s(window, build_c, monkeypatch):
-    from learner import networks
-    from learner.networks import block_dot
+    from learner import critic_layer
+    from learner.critic_layer import block_dot
 
-    monkeypatch.setattr(networks, "_BUILD_C", build_c)
+    monkeypatch.setattr(critic_layer, "_BUILD_C", build_c)
 
     obs, actions = _batch(5)
     a, n = 4, 4
@@ -215,104 +159,12 @@ def test_critic_gradients_match_when_an_agent_never_sees_anything():
         _close(g, g_ref)
 
 
-def test_block_relevance_refuses_dense_values_after_the_critic_changed():
-    obs, actions = _batch(6)
-    x = agent_blocks(obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4, 2)
-    mlp = _mlp(2, x.shape[-1])
-    kept, _ = lrp_epsilon(mlp, x)
-    before = kept.dense()  # computed while the weights are unchanged: kept as it is
-    rel, _ = lrp_epsilon(mlp, x)
-    with torch.no_grad():
-        mlp.layers[0].weight.add_(1.0)  # an optimiser step, in place
-    fresh, _ = lrp_epsilon(mlp, x)
-    assert not torch.allclose(fresh.dense(), before)
-    torch.testing.assert_close(kept.dense(), before)
-    with pytest.raises(RuntimeError, match="changed after this relevance was computed"):
-        rel.dense()
-
-
 def test_the_dense_path_is_taken_when_hist_is_not_a_window_view():
     obs, actions = _batch()
     hist = reference_obs_history(obs, 3)[:, :, :-1]
     x = agent_blocks(hist, actions[:, :, :-1], 4, 3)
     assert type(x) is torch.Tensor
-    torch.testing.assert_close(x, agent_blocks_dense(hist, actions[:, :, :-1], 4))
-
-
-def test_lazy_inputs_are_read_only_and_otherwise_behave_as_dense():
-    obs, actions = _batch()
-    x = agent_blocks(obs_history(obs, 2)[:, :, :-1], actions[:, :, :-1], 4, 2)
-    dense = x.dense()
-    assert "AgentBlocks" in repr(x)
-    blocks = x.view(2, -1, 4, x.block)
-    torch.testing.assert_close(blocks[..., 0], dense.view(2, -1, 4, x.block)[..., 0])
-    torch.testing.assert_close((x * 2).sum(), dense.sum() * 2)
-    with pytest.raises(RuntimeError, match="read-only"):
-        x.add_(1.0)
-    x.clone().add_(1.0)  # a copy is an ordinary tensor
-
-
-def _reference_learner(learner, monkeypatch) -> None:
-    """Make `learner` (an RDNLearner) run the straightforward dense implementation."""
-    import learner.batch as batch
-    import learner.rdn as rdn
-
-    monkeypatch.setattr(batch, "obs_history", reference_obs_history)
-    monkeypatch.setattr(rdn, "agent_inputs", reference_agent_inputs)
-    monkeypatch.setattr(rdn, "unroll", reference_unroll)
-    monkeypatch.setattr(rdn, "lrp_epsilon", reference_lrp)
-    a = learner.info.n_actions
-    monkeypatch.setattr(
-        learner, "critic_inputs", lambda hist, actions: reference_critic_inputs(hist, actions, a)
-    )
-
-
-@pytest.mark.parametrize(
-    "rule", ["eps_residual", pytest.param("grad_x_input", marks=pytest.mark.slow)]
-)
-def test_rdn_updates_match_the_straightforward_implementation(rule, monkeypatch):
-    """Two RDN learners from the same initialisation, one optimised and one running the dense
-    reference, take the same two updates on random skirmish/3m episodes (2 seeds batched):
-    their agent targets, metrics and parameters agree."""
-    from actors.envs.registry import make_vec_env
-    from cluster.bench.update import record_batch
-    from learner.batch import TensorBatch
-    from learner.rdn import RDNConfig, RDNLearner
-
-    schema = make_vec_env("skirmish/3m", 1).info.schema()
-    cfg = RDNConfig(lrp_rule=rule)
-    torch.manual_seed(0)
-    fast = RDNLearner(cfg, schema, n_ensemble=2)
-    torch.manual_seed(0)
-    slow = RDNLearner(cfg, schema, n_ensemble=2)
-    batch = record_batch("skirmish/3m", 4, 2)
-    tb = TensorBatch.from_episodes(batch)
-    hist = obs_history(tb.obs, cfg.obs_window)[:, :, :-1]
-    x_fast = fast.critic_inputs(hist, tb.actions)
-    assert isinstance(x_fast, AgentBlocks)
-    fast_metrics = [fast.step(batch) for _ in range(2)]
-    targets_fast, q_fast = fast.agent_targets(x_fast)
-    _reference_learner(slow, monkeypatch)
-    slow_metrics = [slow.step(batch) for _ in range(2)]
-    targets_slow, q_slow = slow.agent_targets(slow.critic_inputs(hist.contiguous(), tb.actions))
-    _close(targets_fast, targets_slow, 1e-4)
-    _close(q_fast, q_slow, 1e-4)
-    _same_learners(fast, slow, fast_metrics, slow_metrics, rel=1e-3, atol=1e-5, scale=1e-4)
-
-
-def _same_learners(
-    one, two, metrics_one, metrics_two, rel: float, atol: float, scale: float
-) -> None:
-    """Two RDN learners' metrics of every update agree to `rel` (or `atol`) and their critics'
-    and agents' parameters to `scale` (`_close`)."""
-    for m1, m2 in zip(metrics_one, metrics_two, strict=True):
-        assert m1.keys() == m2.keys()
-        for k in m1:
-            assert m1[k] == pytest.approx(m2[k], rel=rel, abs=atol), k
-    for net in ("critic", "agent"):
-        params = zip(getattr(one, net).parameters(), getattr(two, net).parameters(), strict=True)
-        for p1, p2 in params:
-            _close(p1, p2, scale)
+    torch.testing.assert_close(x, reference_critic_inputs(hist, actions[:, :, :-1], 4))
 
 
 def _tensor_batch(mask: torch.Tensor, n: int = 2, o: int = 3, a: int = 4):
@@ -336,7 +188,7 @@ def _tensor_batch(mask: torch.Tensor, n: int = 2, o: int = 3, a: int = 4):
 def test_real_steps_pack_each_members_real_steps_in_order():
     """`RealSteps` lays out each member's real steps first, in (episode, step) order, with
     the step after each (shift 1) alongside, and puts values back where they came from."""
-    from learner.batch import RealSteps
+    from learner.critic_inputs import RealSteps
 
     mask = torch.tensor(
         [[[1, 1, 1], [1, 0, 0]], [[0, 0, 0], [1, 1, 0]]], dtype=torch.float32
@@ -354,42 +206,8 @@ def test_real_steps_pack_each_members_real_steps_in_order():
     assert torch.equal(steps.take(tb.actions)[0, 0, 3], tb.actions[0, 1, 0])
     values = torch.randn(2, 2, 3, 5)
     assert torch.equal(steps.put(steps.take(values)), values * mask.unsqueeze(-1))
-    hist = steps.hist(1)  # the critic's next observations, lazily
+    hist = steps.hist(1)  # the critic's next observations, as windows
     assert torch.equal(hist.dense()[1, 0, 1], tb.obs[1, 1, 2])
-
-
-@pytest.mark.parametrize(
-    "overrides",
-    [
-        dict(critic_agent_encoder=16, agent_targets="counterfactual", td_lambda=0.8),
-        dict(td_lambda=0.0, agent_targets="taken"),
-        dict(agent_targets="counterfactual", split_actions="greedy", next_action="local_max"),
-    ],
-)
-def test_rdn_on_the_real_steps_packed_matches_every_step(overrides):
-    """With one observation per agent the critic side runs on the real steps packed
-    (`RealSteps`): two learners from one initialisation, one packing them and one computing
-    every step, take the same three updates on random skirmish/3m episodes of unequal lengths
-    (2 seeds batched): their metrics and parameters agree."""
-    from actors.envs.registry import make_vec_env
-    from cluster.bench.update import record_batch
-    from learner.batch import AllSteps, RealSteps, TensorBatch
-    from learner.rdn import RDNConfig, RDNLearner
-
-    schema = make_vec_env("skirmish/3m", 1).info.schema()
-    cfg = RDNConfig(obs_window=1, agent_lr_scale=4.0, lr=1e-3, **overrides)
-    torch.manual_seed(0)
-    packed = RDNLearner(cfg, schema, n_ensemble=2)
-    torch.manual_seed(0)
-    full = RDNLearner(cfg, schema, n_ensemble=2)
-    full.pack_steps = False
-    batch = record_batch("skirmish/3m", 6, 2)
-    tb = TensorBatch.from_episodes(batch)
-    assert 0.2 < float(tb.mask.mean()) < 0.9  # a third or so of the steps are padding
-    assert isinstance(packed.critic_steps(tb), RealSteps)
-    assert isinstance(full.critic_steps(tb), AllSteps)
-    metrics = [(packed.step(batch), full.step(batch)) for _ in range(3)]
-    _same_learners(packed, full, *zip(*metrics, strict=True), rel=1e-4, atol=1e-6, scale=1e-5)
 
 
 @pytest.mark.parametrize("recurrent", [True, False])
@@ -398,8 +216,8 @@ def test_unroll_of_agent_inputs_matches_the_dense_inputs(recurrent):
     a = 4
     x = agent_inputs(obs, actions[:, :, :-1], a)
     dense = reference_agent_inputs(obs, actions[:, :, :-1], a)
-    assert isinstance(x, AgentInputs)
-    torch.testing.assert_close(x, dense, rtol=0, atol=0)
+    assert isinstance(x, AgentInputs) and x.shape == dense.shape
+    torch.testing.assert_close(x.dense(), dense, rtol=0, atol=0)
     torch.manual_seed(0)
     agent = AgentNet(2, dense.shape[-1], a, hidden=8, fc=6, recurrent=recurrent)
     with torch.no_grad():

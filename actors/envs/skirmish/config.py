@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, fields
 from typing import Any
+
+import numpy as np
 
 from actors.envs.base import EnvError
 
@@ -46,7 +49,8 @@ class SkirmishConfig:
             agent to attack; farther agents are ignored until it reaches the agents' spawn.
         bane_dodge: a scripted enemy ground unit that comes within a living agent baneling's
             burst radius plus this margin backs away from it (SC2's AI avoids baneling
-            splash; see README.md, "Enemy AI"); negative: no avoidance.
+            splash; see README.md, "Enemy splash avoidance"); negative: no avoidance. 0.3:
+            the value that meets results/skirmish/README.md's rule on most bane maps.
     """
 
     move_amount: float = 2.0
@@ -74,7 +78,7 @@ class SkirmishConfig:
     shield_regen_delay_s: float = 10.0
     shield_regen_per_s: float = 2.0
     acquire_range: float = 9.0
-    bane_dodge: float = 0.5
+    bane_dodge: float = 0.3
 
     def validate(self) -> None:
         if self.step_mul < 1 or self.substeps < 1 or self.step_mul % self.substeps:
@@ -106,6 +110,13 @@ def make_config(**overrides: Any) -> SkirmishConfig:
     unknown = sorted(set(overrides) - set(valid))
     if unknown:
         raise EnvError(f"unknown skirmish options {unknown}; valid options: {valid}")
+    defaults = SkirmishConfig()
+    kinds = {bool: (bool, np.bool_), int: numbers.Integral, float: numbers.Real}
+    for key, value in overrides.items():
+        want = type(getattr(defaults, key))
+        is_bool = isinstance(value, bool | np.bool_)
+        if not isinstance(value, kinds.get(want, want)) or (want is not bool and is_bool):
+            raise EnvError(f"skirmish option {key}: expected {want.__name__}, got {value!r}")
     cfg = SkirmishConfig(**overrides)
     cfg.validate()
     return cfg

@@ -68,7 +68,8 @@ def bane_variant(zerglings: int) -> MapSpec:
         gap = 2 * unit_types()["zergling"].radius + 0.15  # `_line`'s spacing
         columns = -(-zerglings // 8)
         x, y = lings["at"]
-        lings.update(count=zerglings, at=[x + max(0, columns - 3) * gap, y])
+        shift = 0 if raw.get("formation") == "blob" else max(0, columns - 3) * gap
+        lings.update(count=zerglings, at=[x + shift, y])
         allies.insert(0, lings)
     raw["allies"] = allies
     return parse_map(f"bane_z{zerglings}", raw, f"generated map bane_z{zerglings}")

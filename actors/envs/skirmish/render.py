@@ -2,7 +2,9 @@
 
 Allies are blue, enemies red; the marker shape is the unit type, a bar above each unit its
 health (+ shield, cyan); a line from attacker to target marks who fired during the step;
-dead units are small grey crosses.
+dead units are small grey crosses. An episode's frames are framed on its battle: one square
+view around every position its units take (`battle_view`), not the whole map, in which a
+3m battle filled about a tenth of the frame.
 """
 
 from __future__ import annotations
@@ -55,17 +57,37 @@ def snapshot(venv: SkirmishVecEnv, m: int = 0) -> dict[str, Any]:
     return {**statics(venv, m), **dynamics(venv, m)}
 
 
+MARGIN = 2.0  # map units around the battle (the health bars sit 0.9 above a unit)
+MIN_SPAN = 10.0  # the narrowest view, in map units
+
+
+def battle_view(snaps: list[dict[str, Any]]) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the square around every unit's position in `snaps` (one episode)
+    plus MARGIN, at least MIN_SPAN wide, inside the map (widened by MARGIN) where it fits."""
+    xs = np.concatenate([np.asarray(s["x"], float) for s in snaps])
+    ys = np.concatenate([np.asarray(s["y"], float) for s in snaps])
+    map_w, map_h = snaps[0]["map"]
+    span = max(MIN_SPAN, xs.max() - xs.min() + 2 * MARGIN, ys.max() - ys.min() + 2 * MARGIN)
+    cx, cy = (xs.max() + xs.min()) / 2, (ys.max() + ys.min()) / 2
+    # inside the map but for the margin (a unit at the edge is drawn whole)
+    x0 = min(max(cx - span / 2, -MARGIN), max(map_w + MARGIN - span, -MARGIN))
+    y0 = min(max(cy - span / 2, -MARGIN), max(map_h + MARGIN - span, -MARGIN))
+    return x0, x0 + span, y0, y0 + span
+
+
 class FrameDrawer:
     """Draws snapshots of one battle's units on a single figure kept across frames: the map,
     axes and legend are made once and only the units change (a new figure per frame costs
     several times more, mostly in laying out its ticks).
 
-        drawer = FrameDrawer(first_snapshot)
+        drawer = FrameDrawer(first_snapshot, view=battle_view(snaps))
         frames = [drawer.draw(snap, f"t={t}") for t, snap in enumerate(snaps)]
         drawer.close()
+
+    `view` (x0, x1, y0, y1) is the part of the map shown; None shows the whole map.
     """
 
-    def __init__(self, snap: dict[str, Any]):
+    def __init__(self, snap: dict[str, Any], view: tuple[float, ...] | None = None):
         import matplotlib
 
         matplotlib.use("Agg")
@@ -73,9 +95,12 @@ class FrameDrawer:
 
         self.plt = plt
         self.fig, ax = plt.subplots(figsize=(5, 5), dpi=80)
-        ax.set_xlim(0, snap["map"][0])
-        ax.set_ylim(0, snap["map"][1])
+        x0, x1, y0, y1 = view or (0.0, snap["map"][0], 0.0, snap["map"][1])
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
         ax.set_aspect("equal")
+        # points per map unit: a unit's marker is drawn at least its true size
+        self.pt_per_unit = ax.get_position().width * 5 * 72 / (x1 - x0)
         ax.tick_params(labelsize=6)
         names = snap["names"]
         handles = [
@@ -115,13 +140,14 @@ class FrameDrawer:
             color = "tab:blue" if team[u] == 0 else "tab:red"
             if tint and u in tint:
                 color = tint[u]
-            size = 4 + 8 * s["radius"][u]
+            size = max(4 + 8 * s["radius"][u], 1.6 * s["radius"][u] * self.pt_per_unit)
             ax.plot(x, y, MARKERS.get(names[u], "o"), color=color, ms=size, mec="k", mew=0.4)
+            bar = y + max(0.7, s["radius"][u] + 0.3)  # above the marker
             frac = s["hp"][u] / s["hp_max"][u]
-            ax.plot([x - 0.5, x - 0.5 + frac], [y + 0.7, y + 0.7], color="limegreen", lw=1.5)
+            ax.plot([x - 0.5, x - 0.5 + frac], [bar, bar], color="limegreen", lw=1.5)
             if s["sh_max"][u] > 0:
                 sf = s["sh"][u] / s["sh_max"][u]
-                ax.plot([x - 0.5, x - 0.5 + sf], [y + 0.9, y + 0.9], color="cyan", lw=1.2)
+                ax.plot([x - 0.5, x - 0.5 + sf], [bar + 0.2, bar + 0.2], color="cyan", lw=1.2)
         self.fig.canvas.draw()
         return np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
 
@@ -187,17 +213,19 @@ def render_episode(
     act = POLICIES[policy]
     rng = np.random.default_rng(seed)
     venv.reset()
-    drawer = FrameDrawer(snapshot(venv))
-    frames = [drawer.draw(snapshot(venv), f"{env_id}  t=0")]
+    snaps, titles = [snapshot(venv)], [f"{env_id}  t=0"]
     ret, won, t = 0.0, False, 0
     while t < max_steps:
         r, term, infos = venv.step(act(venv, rng), np.ones(1, bool))
         t += 1
         ret += float(r[0])
-        frames.append(drawer.draw(snapshot(venv), f"{env_id}  t={t}  return={ret:.1f}"))
+        snaps.append(snapshot(venv))
+        titles.append(f"{env_id}  t={t}  return={ret:.1f}")
         if term[0]:
             won = bool(infos[0]["battle_won"])
             break
+    drawer = FrameDrawer(snaps[0], view=battle_view(snaps))
+    frames = [drawer.draw(snap, title) for snap, title in zip(snaps, titles, strict=True)]
     drawer.close()
     out = write_images(frames, out)
     return {"out": str(out), "frames": len(frames), "battle_won": won, "steps": t, "return": ret}
@@ -231,7 +259,7 @@ def render_policy_episode(
             break
     won = bool(result.won[0])
     returns = np.concatenate([[0.0], np.cumsum(result.episodes[0].reward)])
-    drawer = FrameDrawer(snaps[0])
+    drawer = FrameDrawer(snaps[0], view=battle_view(snaps))
     frames = [
         drawer.draw(snap, f"{title}  t={t}  return={returns[t]:.1f}")
         for t, snap in enumerate(snaps)

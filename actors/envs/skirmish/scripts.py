@@ -82,16 +82,56 @@ def nearest_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray
 
 
 def bane_charge_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
-    """Banelings charge the nearest enemy; zerglings step back (away from the nearest enemy)
-    while any baneling, ours or the enemy's, lives, then attack the nearest enemy."""
+    """ "Banelings charge, zerglings step aside" (the dissertation's bane_vs_bane rollout:
+    the zerglings move backwards out of the banelings' way): banelings attack the nearest
+    enemy; zerglings step back (away from the nearest enemy) while any baneling, ours or the
+    enemy's, lives, then attack the nearest enemy. Once no allied zergling lives, the first
+    living allied baneling is kept in reserve and steps back too (a win needs a living
+    agent, and a baneling dies when it bursts)."""
     b, N = venv.battle, venv.st.N
-    nearest = nearest_policy(venv, rng)
     bane = b.kind == KINDS.index("baneling")  # [M, U]
-    is_bane = bane[:, :N]
-    banes_alive = (b.alive & bane).any(1)
-    back = _toward(venv, -1.0)
-    step_back = ~is_bane & banes_alive[:, None]
-    acts = np.where(step_back, back, nearest)
+    step = ~bane[:, :N] & (b.alive & bane).any(1)[:, None]
+    mine = bane[:, :N] & b.alive[:, :N]
+    no_lings = ~(~bane[:, :N] & b.alive[:, :N]).any(1)
+    first = np.arange(N)[None, :] == mine.argmax(1)[:, None]
+    step |= mine & first & no_lings[:, None]
+    return _lings_make_way(venv, rng, step, _toward(venv, -1.0))
+
+
+def bane_aside_policy(venv: SkirmishVecEnv, rng: np.random.Generator) -> np.ndarray:
+    """Like bane_charge, but the zerglings step sideways out of the lane from our banelings
+    to the enemy (each to the side it stands on) while any of our banelings lives."""
+    b, N = venv.battle, venv.st.N
+    bane = b.kind == KINDS.index("baneling")
+    mine = bane[:, :N] & b.alive[:, :N]
+    ours, foes = (
+        _centre(b.x[:, :N], b.y[:, :N], mine),
+        _centre(b.x[:, N:], b.y[:, N:], b.alive[:, N:]),
+    )
+    ax, ay = foes[0] - ours[0], foes[1] - ours[1]  # [M] the lane's direction
+    side = np.sign(
+        ax[:, None] * (b.y[:, :N] - ours[1][:, None])
+        - ay[:, None] * (b.x[:, :N] - ours[0][:, None])
+    )
+    side = np.where(side == 0, 1.0, side)
+    px, py = -ay[:, None] * side, ax[:, None] * side
+    move = np.where(
+        np.abs(px) >= np.abs(py), np.where(px > 0, EAST, WEST), np.where(py > 0, NORTH, SOUTH)
+    )
+    ok = np.take_along_axis(venv.get_avail_actions(), move[..., None], 2)[..., 0] > 0
+    step = ~bane[:, :N] & mine.any(1)[:, None]
+    return _lings_make_way(venv, rng, step, np.where(ok, move, 1))
+
+
+def _centre(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean position [M] of the units where `w` [M, K]."""
+    n = np.maximum(w.sum(1), 1)
+    return (x * w).sum(1) / n, (y * w).sum(1) / n
+
+
+def _lings_make_way(venv, rng, step: np.ndarray, move: np.ndarray) -> np.ndarray:
+    """Agents where `step` [M, N] take `move`; the others attack the nearest enemy."""
+    acts = np.where(step, move, nearest_policy(venv, rng))
     dead = venv.get_avail_actions()[:, :, 0] > 0
     return np.where(dead, 0, acts)
 
@@ -101,6 +141,7 @@ POLICIES: dict[str, Policy] = {
     "focus_fire": focus_fire_policy,
     "nearest": nearest_policy,
     "bane_charge": bane_charge_policy,
+    "bane_aside": bane_aside_policy,
 }
 
 

@@ -45,13 +45,45 @@ function legend(node, series) {
   });
 }
 
+function clock(t) {
+  return new Date(t * 1000).toTimeString().slice(0, 8);
+}
+
+function fixed(v, digits) {
+  return v === null || v === undefined ? "–" : Number(v).toFixed(digits);
+}
+
+// The run's end, in words: finished (its summary's final numbers) or stopped.
+function runBanner(run) {
+  const box = document.getElementById("run");
+  const ended = run && run.ended;
+  box.hidden = !ended;
+  box.dataset.state = ended ? ended.state : "running";
+  if (!ended) return;
+  if (ended.state === "finished") {
+    const s = ended.summary;
+    box.textContent = `Run finished at ${clock(ended.finished_at)}: ${s.algo} on ${s.env}, ` +
+      `${Number(s.t_env).toLocaleString("en")} env steps in ${fixed(s.wall_s, 0)} s. ` +
+      `Final test win rate ${fixed(s.final_test_won_mean, 2)}, ` +
+      `test return ${fixed(s.final_test_return_mean, 2)}. The charts end at its last scrape.`;
+  } else {
+    box.textContent = `The run's exporters stopped answering at ${clock(ended.last_seen)} ` +
+      "and it wrote no summary.json: it was stopped or it crashed. " +
+      "The charts end at its last scrape.";
+  }
+}
+
 function render(data) {
   document.getElementById("source").textContent = "source: " + data.source;
-  document.getElementById("updated").textContent =
-    "updated " + new Date(data.end * 1000).toTimeString().slice(0, 8);
+  document.getElementById("updated").textContent = "updated " + clock(data.end);
   const errors = document.getElementById("errors");
   errors.hidden = data.errors.length === 0;
   errors.textContent = data.errors.join("\n");
+  runBanner(data.run);
+  const shown = new Set(data.panels.map(p => p.id));
+  for (const node of grid.querySelectorAll(".panel")) {
+    if (!shown.has(node.dataset.panel)) node.remove();  // not this run's algorithm
+  }
   for (const panel of data.panels) {
     const node = card(panel);
     const n = creditCharts.drawChart(node.querySelector("svg"), panel.series,

@@ -21,7 +21,9 @@ def test_generated_variants_are_the_seeds_maps(n, table_map):
 def test_no_zerglings_keeps_the_banelings_at_their_point():
     z0, no_z = bane_variant(0), builtin_map("bane_no_z")
     assert z0.n_agents == no_z.n_agents == 4 and z0.enemies == no_z.enemies
-    assert {x for x, _ in z0.allies[0].positions} == {8.0}  # bane_no_z: 11.0
+    # SMAC's blob spawn around each group's point: bane_z0's at 8, bane_no_z's at 11.
+    assert np.mean(z0.allies[0].positions, 0) == pytest.approx([8.2, 16.2], abs=0.3)
+    assert np.mean(no_z.allies[0].positions, 0) == pytest.approx([11.2, 16.2], abs=0.3)
     assert env_info("skirmish/bane_z0").obs_shape == env_info("skirmish/bane_no_z").obs_shape
 
 
@@ -35,12 +37,15 @@ def test_sizes_follow_the_number_of_zerglings(n):
     assert info.state_shape == agents * 6 + 24 * 5 + agents * 30
 
 
-def test_more_than_three_columns_stay_ahead_of_the_banelings():
-    names, pos = ordered_units(bane_variant(30), "allies")
+@pytest.mark.parametrize("n", [30, 64])
+def test_a_big_blob_of_zerglings_spawns_around_its_point_clear_of_the_banelings(n):
+    names, pos = ordered_units(bane_variant(n), "allies")
     banes = pos[[i for i, t in enumerate(names) if t == "baneling"]]
     lings = pos[[i for i, t in enumerate(names) if t == "zergling"]]
-    assert lings[:, 0].min() == pytest.approx(11.0 - 2 * 0.9) and banes[:, 0].max() == 8.0
-    assert lings[:, 0].max() == pytest.approx(11.9)
+    assert lings.mean(0) == pytest.approx([11.0, 16.0], abs=0.6)
+    assert banes.mean(0) == pytest.approx([8.0, 16.0], abs=1.2)  # pushed back by 64
+    gaps = np.linalg.norm(lings[:, None] - banes[None], axis=-1)
+    assert gaps.min() >= 2 * 0.375 - 1e-6  # SC2 places each unit on a free spot
 
 
 def test_a_generated_variant_plays_like_any_env():
