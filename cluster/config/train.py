@@ -23,6 +23,7 @@ from cluster.config.schema import (
     read_yaml,
     to_dict,
 )
+from learner.precision import PRECISIONS
 from learner.rdn import drop_retired_keys
 from learner.registry import get_algo
 
@@ -119,6 +120,9 @@ class RunConfig:
             returning it to the OS after every update (glibc only: `cluster.alloc`); 17-23%
             cheaper updates on maps with large batches, at the price of a resident size that
             stays at its peak.
+        precision: "float32" or "bf16": the learner's matrix products in bfloat16 where the
+            CPU (or GPU) has it, float32 otherwise (`learner.precision`; a different
+            computation, so float32 stays the default until a learning comparison).
         max_policy_lag: drop sampled episodes more than this many versions behind the
             learner before an update, in both modes (0 = keep all; off-policy learners
             replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
@@ -134,6 +138,7 @@ class RunConfig:
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
     keep_freed_memory: bool = True
+    precision: Literal["float32", "bf16"] = "float32"
     max_policy_lag: int = 0
 
     def validate(self) -> None:
@@ -155,6 +160,8 @@ class RunConfig:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
         if self.max_policy_lag < 0:
             raise ValueError(f"max_policy_lag must be >= 0, got {self.max_policy_lag}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
 
 
 @dataclass(frozen=True)
