@@ -51,6 +51,9 @@ def main() -> int:
     p.add_argument("--runs", nargs="+", default=["skirmish/bane_vs_bane:3000", "skirmish/3m:6000"])
     p.add_argument("--algos", nargs="+", default=["rdn", "vdn", "qmix"])
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument(
+        "--order", nargs="+", default=["old", "new", "new_bf16"], help="the variants' order"
+    )
     p.add_argument("--out", required=True)
     a = p.parse_args()
     new, py = Path.cwd(), sys.executable
@@ -62,10 +65,16 @@ def main() -> int:
             bench = [py, "-m", "cluster.cli", "bench", "train", "--env", env, "--algo", algo]
             bench += ["--seeds", str(a.seeds), "--steps", steps]
             row = {"env": env, "algo": algo, "seeds": a.seeds, "steps": int(steps)}
-            row["old"] = run(Path(a.old), [py, "-c", OLD, *common])
-            row["new"] = run(new, bench)
-            row["new_bf16"] = run(new, [*bench, "--set", "run.precision=bf16"])
+            variants = {
+                "old": (Path(a.old), [py, "-c", OLD, *common]),
+                "new": (new, bench),
+                "new_bf16": (new, [*bench, "--set", "run.precision=bf16"]),
+            }
+            for name in a.order:
+                row[name] = run(*variants[name])
             for v in ("new", "new_bf16"):
+                if v not in row:
+                    continue
                 row[f"{v}_over_old"] = round(
                     row[v]["env_steps_per_s"] / row["old"]["env_steps_per_s"], 2
                 )
