@@ -4,7 +4,8 @@ The real loop, the rollout worker and the learner mark their parts with `timed(n
 `credit bench train` switches the accumulators on and reads them. Sections nest: a section
 opened inside another is recorded under the path of both ("update/backward"), so the env
 steps of an evaluation ("eval/env") are kept apart from those of training ("act/env").
-Switched off (the default), a section costs one attribute test.
+Switched off (the default), a section costs one attribute test. One thread records at a time
+(the loop's); the totals are not locked.
 
 Calling loop::
 

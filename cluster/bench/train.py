@@ -120,6 +120,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             "steps": args.steps,
             "overrides": args.set,
             "torch_threads": cfg.run.torch_threads,
+            "precision": core.precision,  # run.precision as this machine runs it
             "t_env": core.t_env,
             "env_steps_total": core.t_env * args.seeds,
             "total_s": round(total, 3),

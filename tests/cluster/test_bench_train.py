@@ -49,7 +49,7 @@ def test_bench_train_runs_the_loop_and_its_parts_sum_to_the_wall_time(tmp_path):
     subprocess.run(cmd, check=True, capture_output=True, timeout=600)
     rec = json.loads(out.read_text())
     assert rec["benchmark"] == "train" and rec["seeds"] == 2 and rec["t_env"] >= 700
-    assert rec["updates"] > 0 and rec["env_steps_per_s"] > 0
+    assert rec["updates"] > 0 and rec["env_steps_per_s"] > 0 and rec["precision"] == "float32"
     parts = rec["parts_s"]
     assert set(parts) == {
         "env", "acting", "act_other", "sampling", "batching", "forward", "backward",
