@@ -18,6 +18,7 @@ from actors.policy import ExplorationConfig, select_actions
 from buffer_service.episode import Episode
 from learner.batch import AgentInputLayout
 from learner.networks import ActingSpec, AgentNet, VersionedWeights
+from learner.timers import timed
 
 
 def clock_seq(last: int) -> int:
@@ -170,19 +171,24 @@ class RolloutWorker:
         t = 0
         with torch.no_grad():
             while active.any() and t < limit:
-                obs[:, t], state[:, t], avail[:, t] = (
-                    venv.get_obs(),
-                    venv.get_state(),
-                    venv.get_avail_actions(),
-                )
+                with timed("env"):
+                    obs[:, t], state[:, t], avail[:, t] = (
+                        venv.get_obs(),
+                        venv.get_state(),
+                        venv.get_avail_actions(),
+                    )
                 # the order of AgentInputLayout: own obs, last action, agent id
-                x = torch.cat([torch.from_numpy(obs[:, t]).reshape(e, m * n, -1), last, ids], -1)
-                out, h = self.agent(x, h)
-                av = torch.from_numpy(avail[:, t]).reshape(e, m * n, a).bool()
-                act = select_actions(out, av, self.kind, eps, greedy, self.gen)
-                last = F.one_hot(act, a).float()
-                acts = act.view(k, n).numpy()
-                r, done, infos = venv.step(acts, active)
+                with timed("policy"):
+                    x = torch.cat(
+                        [torch.from_numpy(obs[:, t]).reshape(e, m * n, -1), last, ids], -1
+                    )
+                    out, h = self.agent(x, h)
+                    av = torch.from_numpy(avail[:, t]).reshape(e, m * n, a).bool()
+                    act = select_actions(out, av, self.kind, eps, greedy, self.gen)
+                    last = F.one_hot(act, a).float()
+                    acts = act.view(k, n).numpy()
+                with timed("env"):
+                    r, done, infos = venv.step(acts, active)
                 if on_step:
                     on_step()
                 actions[:, t], reward[:, t] = acts, np.where(active, r, 0.0)

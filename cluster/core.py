@@ -31,6 +31,7 @@ from cluster.alloc import keep_freed_memory
 from cluster.config.plan import data_plan
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
+from learner.precision import autocast, effective_precision
 from learner.registry import Learner, get_algo
 
 log = logging.getLogger(__name__)
@@ -136,6 +137,7 @@ class TrainerCore:
         self.learner: Learner = self.spec.build(
             cfg.algo, self.info.schema(), n_ensemble, run.device
         )
+        self.device, self.precision = device, effective_precision(run.precision, device)
         mode = run.acting_weights
         if mode == "auto":
             mode = "shared" if device.type == "cpu" else "copy"
@@ -161,7 +163,8 @@ class TrainerCore:
 
     def update(self, batch: EpisodeBatch, extra: EpisodeBatch | None) -> dict[str, float]:
         """One learner step, then the episode-counted target refresh; returns its metrics."""
-        metrics = self.learner.step(batch, extra)
+        with autocast(self.precision, self.device):
+            metrics = self.learner.step(batch, extra)
         self.learner.sync_targets(self.episodes)
         self.record_update(metrics)
         return metrics

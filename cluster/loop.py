@@ -53,6 +53,7 @@ from buffer_service.episode import Episode, EpisodeBatch
 from cluster.config.schema import ConfigError
 from cluster.core import EvalRecord, Progress, TrainerCore
 from cluster.metrics.loop_stats import LoopStats
+from learner.timers import TIMERS, timed
 
 log = logging.getLogger(__name__)
 
@@ -194,21 +195,24 @@ class TrainLoop:
                 on_eval(records)
 
         while core.t_env < run.t_max and not self.stop_requested and not (stop and stop()):
-            for pair in self.data.catch_up():
+            for pair in TIMERS.iterate("sample", self.data.catch_up()):
                 self._update(pair)
-            steps, episodes = self.acting.act()
+            with timed("act"):
+                steps, episodes = self.acting.act()
             core.t_env += steps
             core.episodes += episodes
-            for pair in self.data.batches(episodes):
+            for pair in TIMERS.iterate("sample", self.data.batches(episodes)):
                 self._update(pair)
-            core.periodic(evaluated, bar, self.save)
+            with timed("periodic"):  # evaluation, and the checkpoint ("periodic/checkpoint")
+                core.periodic(evaluated, bar, self._timed_save)
         if bar:
             bar.close()
 
     def _update(self, pair: Pair) -> None:
         batch, extra = pair
         started = time.perf_counter()
-        self.core.update(batch, extra)
+        with timed("update"):
+            self.core.update(batch, extra)
         seconds = time.perf_counter() - started
         self.stats.updates += 1
         self.stats.update_s += seconds
@@ -219,6 +223,10 @@ class TrainLoop:
     def state(self) -> dict[str, Any]:
         """The acting and data sides' counters and RNG states, for a checkpoint."""
         return {**self.acting.state(), **self.data.state()}
+
+    def _timed_save(self, path: Path) -> None:
+        with timed("checkpoint"):
+            self.save(path)
 
     def save(self, path: Path, replay: bool = True) -> None:
         """Checkpoint the learner, the loop and (local mode, with `replay`) the buffer tables

@@ -13,6 +13,7 @@ import torch
 from torch.nn import functional as F
 
 from buffer_service.episode import EpisodeBatch
+from learner.timers import timed
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,11 @@ class TensorBatch:
     @classmethod
     def from_episodes(cls, batch: EpisodeBatch, device: str | torch.device = "cpu") -> TensorBatch:
         """Convert; a batch without an ensemble axis gets E = 1."""
+        with timed("batch"):
+            return cls._convert(batch, device)
+
+    @classmethod
+    def _convert(cls, batch: EpisodeBatch, device: str | torch.device) -> TensorBatch:
         add_e = batch.reward.ndim == 2
 
         def t(arr, dtype):

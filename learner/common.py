@@ -12,6 +12,7 @@ from torch import nn
 from buffer_service.episode import EpisodeSchema
 from learner.batch import AgentInputLayout
 from learner.networks import ActingSpec, AgentNet, VersionedWeights, clip_grad_norm_per_member
+from learner.timers import timed
 
 OPTIMISERS = ("adam", "rmsprop")
 
@@ -115,9 +116,11 @@ class Updater:
             bad = loss_per_member.detach().cpu().tolist()
             raise NonFiniteLossError(f"{self.name} loss is not finite: {bad}; update not applied")
         self.optimiser.zero_grad(set_to_none=True)
-        loss_per_member.sum().backward()
-        norms = clip_grad_norm_per_member(self.params, self.grad_norm_clip)
-        self.optimiser.step()
+        with timed("backward"):
+            loss_per_member.sum().backward()
+        with timed("optimiser"):
+            norms = clip_grad_norm_per_member(self.params, self.grad_norm_clip)
+            self.optimiser.step()
         return norms
 
 

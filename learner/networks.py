@@ -305,7 +305,8 @@ def input_projection(layer: EnsembleLinear, x: AgentInputs, time_major: bool) ->
     # out of place: an in-place index_add_ into a view of `out` makes autograd clone the whole
     # output in the backward (CopySlices), which cost as much as the rest of this layer's
     # forward and backward together; the values and gradients are the same, bit for bit
-    return out.view(-1, h).index_add(0, flat, torch.cat(parts)).view(out.shape)
+    # (under bfloat16 autocast the products are bfloat16; the sum stays in out's float32)
+    return out.view(-1, h).index_add(0, flat, torch.cat(parts).to(out.dtype)).view(out.shape)
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from learner.common import (
 )
 from learner.critic_inputs import AllSteps, RealSteps, agent_blocks
 from learner.networks import MLP, AgentBlockLinear, unroll
+from learner.precision import float32_only
 from learner.rdn_fast import agent_targets
 from learner.targets import q_lambda_targets
 
@@ -221,9 +222,20 @@ class RDNLearner(AgentCriticLearner):
         step, or the real steps packed; the agents' Q-values are taken into it, and the next
         values put back for the Q(lambda) targets, which need the episodes' time order."""
         tb = TensorBatch.from_episodes(batch, self.device)
-        n, a = self.info.n_agents, self.info.n_actions
         steps = self.critic_steps(tb)
-        qs_all = unroll(self.agent, agent_inputs(tb.obs, tb.actions, a))  # [E, B, T+1, N, A]
+        qs_all = unroll(
+            self.agent, agent_inputs(tb.obs, tb.actions, self.info.n_actions)
+        )  # [E, B, T+1, N, A]
+        # the critic's layers are float32 only (under run.precision=bf16 only the agents'
+        # unroll above runs in bfloat16; the cast is exact)
+        with float32_only(qs_all.device):
+            return self._critic_and_agents(tb, steps, qs_all.float())
+
+    def _critic_and_agents(
+        self, tb: TensorBatch, steps: AllSteps | RealSteps, qs_all: torch.Tensor
+    ) -> dict[str, float]:
+        """`step` after the agents' unroll: the critic's update, then the agents'."""
+        n, a = self.info.n_agents, self.info.n_actions
         qs, actions, avail = steps.take(qs_all), steps.take(tb.actions), steps.take(tb.avail)
         e, b, t = steps.mask.shape
         x = self.critic_inputs(steps.hist(), actions)

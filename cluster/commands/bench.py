@@ -16,6 +16,7 @@ from cluster.bench import memory as memory_bench
 from cluster.bench import open_loop as open_loop_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
+from cluster.bench import train as train_bench
 from cluster.bench import update as update_bench
 from cluster.commands import add_command
 
@@ -26,6 +27,7 @@ BENCHES: list = [
     matrix_bench,
     scaling_bench,
     learn_bench,
+    train_bench,
     update_bench,
     memory_bench,
     open_loop_bench,

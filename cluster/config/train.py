@@ -24,6 +24,7 @@ from cluster.config.schema import (
     read_yaml,
     to_dict,
 )
+from learner.precision import PRECISIONS
 from learner.rdn import drop_retired_keys
 from learner.registry import get_algo
 
@@ -128,6 +129,9 @@ class RunConfig:
             cheaper updates on maps with large batches, at the price of a resident size that
             stays at its peak (on bane_vs_bane with 3 seeds about 0.6 GiB more, a fixed cost;
             the replay is stored outside that heap and does not add to it).
+        precision: "float32" or "bf16": the learner's matrix products in bfloat16 where the
+            CPU (or GPU) has it, float32 otherwise (`learner.precision`; a different
+            computation, so float32 stays the default until a learning comparison).
         max_policy_lag: drop sampled episodes more than this many versions behind the
             learner before an update, in both modes (0 = keep all; off-policy learners
             replay old episodes by design). Needs a run of one seed (n_ensemble = 1).
@@ -146,6 +150,7 @@ class RunConfig:
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1
     keep_freed_memory: bool = True
+    precision: Literal["float32", "bf16"] = "float32"
     max_policy_lag: int = 0
     loggers: tuple[Literal["jsonl", "tensorboard", "wandb"], ...] = ("jsonl",)
 
@@ -173,6 +178,8 @@ class RunConfig:
                 f"loggers must name jsonl (metrics.jsonl is the run's record) and each logger "
                 f"once, got {list(self.loggers)}"
             )
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
 
 
 @dataclass(frozen=True)
