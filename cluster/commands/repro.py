@@ -22,8 +22,10 @@ from cluster.repro import curves as repro_curves
 from cluster.repro import emcac as repro_emcac
 from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
+from cluster.repro import resume as repro_resume
 from cluster.repro import smac as repro_smac
 from cluster.repro.fanout import FanOutConfig
+from cluster.repro.resume import ResumeConfig
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -106,6 +108,16 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="config override for every run",
     )
+    m.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=repro_resume.CHECKPOINT_EVERY,
+        metavar="STEPS",
+        help="each pair checkpoints its whole state (networks, optimisers, replay, random "
+        "states, evaluation log) to OUT/resume/<env>__<algo>/ every STEPS env steps "
+        f"(default {repro_resume.CHECKPOINT_EVERY:,}; 0: never); running the same command "
+        "again continues unfinished pairs from there and skips finished ones",
+    )
 
 
 def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
@@ -122,6 +134,16 @@ def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
     except ValueError as e:
         raise UsageError(str(e)) from None
     return cfg
+
+
+def resume_config(args: argparse.Namespace, out: Path, overrides: list[str]) -> ResumeConfig:
+    """Where the pairs checkpoint and record themselves (UsageError for a bad interval)."""
+    if args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    commit = repro_resume.code_commit()
+    log.info("code at commit %s", commit)
+    settings = {"seeds": args.seeds, "overrides": list(overrides)}
+    return ResumeConfig(str(out.resolve()), args.checkpoint_every, commit, settings)
 
 
 def _run(run: Callable[[], list]) -> list:
@@ -267,9 +289,10 @@ def cmd_curves(
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
         checkpoints = out / "checkpoints" if args.checkpoints else None
+        resume = resume_config(args, out, overrides)
         curves = _run(
             lambda: repro_curves.run(
-                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max
+                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max, resume
             )
         )
     summary = repro_curves.summarise(curves)
@@ -316,8 +339,11 @@ def cmd_matrix(args: argparse.Namespace) -> int:
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
+    resume = resume_config(args, out, overrides)
     curves = _run(
-        lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+        lambda: repro_matrix.run(
+            algos, games, args.seeds, overrides, fan, out / "evals", t_max, resume
+        )
     )
     summary = repro_matrix.summarise(curves, optimum)
     write_json(out / "summary.json", summary)
