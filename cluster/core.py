@@ -33,6 +33,7 @@ from cluster.alloc import keep_freed_memory
 from cluster.config.plan import data_plan
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
+from cluster.cpu import ThreadGovernor
 from learner.registry import Learner, get_algo
 
 log = logging.getLogger(__name__)
@@ -119,7 +120,7 @@ class TrainerCore:
         self.cfg, self.E = cfg, n_ensemble
         self.checkpoint_dir = checkpoint_dir
         run = cfg.run
-        torch.set_num_threads(run.torch_threads)
+        self.threads = ThreadGovernor(run.torch_threads)
         if run.keep_freed_memory:
             keep_freed_memory()
         torch.manual_seed(run.seed)

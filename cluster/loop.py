@@ -207,6 +207,7 @@ class TrainLoop:
             for pair in self.data.batches(episodes):
                 self._update(pair)
             core.periodic(evaluated, bar, self.save)
+            core.threads.tick()
         if bar:
             bar.close()
 

@@ -11,6 +11,7 @@ import argparse
 from cluster.bench import codec as codec_bench
 from cluster.bench import env as env_bench
 from cluster.bench import learn as learn_bench
+from cluster.bench import load as load_bench
 from cluster.bench import matrix as matrix_bench
 from cluster.bench import scaling as scaling_bench
 from cluster.bench import service as service_bench
@@ -24,6 +25,7 @@ BENCHES: list = [
     matrix_bench,
     scaling_bench,
     learn_bench,
+    load_bench,
     update_bench,
 ]
 
