@@ -316,11 +316,6 @@ def run_pairs(
     """
     collector = Collector(pairs, log_dir, status)
     results = {}
-    for p in pairs:
-        if store is not None and (done := store.finished(p)) is not None:
-            results[p] = done
-            collector.skip(p)
-    todo = [p for p in pairs if p not in results]
 
     def arrived(pair: Pair, result: Any) -> None:
         if store is not None:
@@ -329,6 +324,11 @@ def run_pairs(
             on_result(pair, result)
 
     try:
+        for p in pairs:
+            if store is not None and (done := store.finished(p)) is not None:
+                results[p] = done
+                collector.skip(p)
+        todo = [p for p in pairs if p not in results]
         if todo and cfg.address:
             from cluster.repro.fanout_ray import run_ray  # imports ray
 
