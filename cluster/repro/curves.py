@@ -112,26 +112,26 @@ def run_pair(
     from cluster.launch.local import LocalTrainer
 
     torch.set_num_threads(threads)
-    journal = PairJournal(resume, Pair(algo, env), report)
-    cfg = load_train_config(algo, env, [], overrides + journal.overrides())
-    trainer = LocalTrainer(cfg, n_ensemble=seeds)
-    journal.attach(trainer)
+    with PairJournal(resume, Pair(algo, env), report) as journal:
+        cfg = load_train_config(algo, env, [], overrides + journal.overrides())
+        trainer = LocalTrainer(cfg, n_ensemble=seeds)
+        journal.attach(trainer)
 
-    def on_eval(records) -> None:
-        means = trainer.core.take_metric_means()  # over the updates since the last evaluation
-        row = {
-            "env": env,
-            "algo": algo,
-            "t_env": records[0].t_env,
-            "won": [float(r.test_won_mean or 0.0) for r in records],
-            "returns": [r.test_return_mean for r in records],
-        }
-        journal.add({**row, **{k: v for k, v in means.items() if k in LEARNER_KEYS}})
+        def on_eval(records) -> None:
+            means = trainer.core.take_metric_means()  # over the updates since the last evaluation
+            row = {
+                "env": env,
+                "algo": algo,
+                "t_env": records[0].t_env,
+                "won": [float(r.test_won_mean or 0.0) for r in records],
+                "returns": [r.test_return_mean for r in records],
+            }
+            journal.add({**row, **{k: v for k, v in means.items() if k in LEARNER_KEYS}})
 
-    trainer.train(on_eval=on_eval)
-    if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
-        on_eval(trainer.core.evaluate())
-    journal.finish()
+        trainer.train(on_eval=on_eval)
+        if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
+            on_eval(trainer.core.evaluate())
+        journal.finish()
     files: tuple[tuple[str, bytes], ...] = ()
     if checkpoint:
         with tempfile.TemporaryDirectory() as tmp:

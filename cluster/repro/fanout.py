@@ -360,9 +360,12 @@ class _Direct:
 _pool_events: Any = None  # the event queue of a local pool's worker process
 
 
-def _pool_init(events: Any) -> None:
+def _pool_init(events: Any, driver: int) -> None:
+    from cluster.repro.resume import die_with_parent
+
     global _pool_events
     _pool_events = events
+    die_with_parent(driver)
 
 
 def _pool_pair(fn: PairFn, pair: Pair, args: tuple) -> Any:
@@ -390,7 +393,9 @@ def _run_pool(
     """Today's local mode: a process pool of `workers`; events come back on a queue the
     workers inherit."""
     events = multiprocessing.get_context().Queue()
-    with ProcessPoolExecutor(workers, initializer=_pool_init, initargs=(events,)) as pool:
+    with ProcessPoolExecutor(
+        workers, initializer=_pool_init, initargs=(events, os.getpid())
+    ) as pool:
         futures = {pool.submit(_pool_pair, fn, p, args): p for p in pairs}
         pending = set(futures)
         while pending:

@@ -58,19 +58,19 @@ def run_pair(
     from cluster.launch.local import LocalTrainer
 
     torch.set_num_threads(threads)
-    journal = PairJournal(resume, Pair(algo, game), report)
-    cfg = load_train_config(algo, game, [], overrides + journal.overrides())
-    trainer = LocalTrainer(cfg, n_ensemble=seeds)
-    journal.attach(trainer)
+    with PairJournal(resume, Pair(algo, game), report) as journal:
+        cfg = load_train_config(algo, game, [], overrides + journal.overrides())
+        trainer = LocalTrainer(cfg, n_ensemble=seeds)
+        journal.attach(trainer)
 
-    def on_eval(records) -> None:
-        returns = [r.test_return_mean for r in records]
-        journal.add({"env": game, "algo": algo, "t_env": records[0].t_env, "returns": returns})
+        def on_eval(records) -> None:
+            returns = [r.test_return_mean for r in records]
+            journal.add({"env": game, "algo": algo, "t_env": records[0].t_env, "returns": returns})
 
-    trainer.train(on_eval=on_eval)
-    if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
-        on_eval(trainer.core.evaluate())
-    journal.finish()
+        trainer.train(on_eval=on_eval)
+        if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
+            on_eval(trainer.core.evaluate())
+        journal.finish()
     diagnostics = None
     if algo == "rdn":
         from cluster.inspect.rdn_diagnostics import diagnose

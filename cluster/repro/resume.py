@@ -25,9 +25,13 @@ machine, or a filesystem the nodes share), and starts again from zero elsewhere.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import fcntl
 import json
 import logging
+import os
 import shutil
+import signal
 import subprocess
 import time
 from collections.abc import Callable
@@ -44,6 +48,7 @@ CHECKPOINT_EVERY = 20_000  # default --checkpoint-every (env steps)
 RESUME_FOLDER = "resume"  # OUT/resume/<key>/: each unfinished pair's checkpoint
 DONE_FOLDER = "pairs"  # OUT/pairs/<key>.json: each finished pair's record
 JOURNAL = "pair.json"  # in a checkpoint: the evaluation log, commits, wall time, settings
+PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 def code_commit() -> str:
@@ -112,6 +117,35 @@ def _check_settings(saved: dict, wanted: dict, what: str, where: Path) -> None:
         )
 
 
+def die_with_parent(parent: int) -> None:
+    """Linux: this process is killed when its parent (pid `parent`) dies, kill -9 included,
+    so that a pool worker of a killed driver does not go on training a pair that the rerun
+    continues; it exits at once if that parent is already gone."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # not Linux: the worker ends when the pair does
+        return
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _lock(folder: Path) -> Any:
+    """Hold OUT/resume/<key>.lock for this process (released when it ends, however it ends);
+    raises UsageError when another process trains the pair into `folder`."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    f = open(folder.with_name(folder.name + ".lock"), "a+")  # noqa: SIM115 - held until finish
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        raise UsageError(
+            f"another process is training into {folder} (its .lock is held): the same run "
+            "twice at once? Stop the other one, or use another --out"
+        ) from None
+    return f
+
+
 def folder_bytes(folder: Path) -> int:
     return sum(f.stat().st_size for f in Path(folder).rglob("*") if f.is_file())
 
@@ -121,13 +155,16 @@ class PairJournal:
 
     Calling loop::
 
-        journal = PairJournal(resume, Pair(algo, env), report)
-        cfg = load_train_config(algo, env, [], overrides + journal.overrides())
-        trainer = LocalTrainer(cfg, n_ensemble=seeds)
-        journal.attach(trainer)              # continues from the checkpoint, if any
-        trainer.train(on_eval=lambda records: journal.add(row_of(records)))
-        journal.finish()                     # removes the checkpoint
+        with PairJournal(resume, Pair(algo, env), report) as journal:
+            cfg = load_train_config(algo, env, [], overrides + journal.overrides())
+            trainer = LocalTrainer(cfg, n_ensemble=seeds)
+            journal.attach(trainer)          # continues from the checkpoint, if any
+            trainer.train(on_eval=lambda records: journal.add(row_of(records)))
+            journal.finish()                 # removes the checkpoint
         journal.rows, journal.commits, journal.wall_s
+
+    Leaving the `with` block, however it is left, lets go of the pair's lock (a second
+    process training the same pair into the same folder is refused while it is held).
 
     Args:
         resume: the run's checkpoint settings (None: no checkpoints).
@@ -145,6 +182,15 @@ class PairJournal:
         self.wall_offset = 0.0
         self.started = time.monotonic()
         self.trainer: Any = None
+        self.lock: Any = None
+
+    def __enter__(self) -> PairJournal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.lock is not None:
+            self.lock.close()
+            self.lock = None
 
     @property
     def wall_s(self) -> float:
@@ -160,6 +206,7 @@ class PairJournal:
         self.trainer, self.started = trainer, time.monotonic()
         if self.folder is None:
             return
+        self.lock = _lock(self.folder)
         trainer.core.checkpoint_dir = self.folder
         trainer.loop.checkpoint_files.append(self._write)
         journal = _checkpoint_journal(self.folder)
@@ -222,6 +269,8 @@ class PairJournal:
         self.trainer.core.checkpoint_dir = None
         for suffix in ("", ".old", ".tmp"):
             shutil.rmtree(self.folder.with_name(self.folder.name + suffix), ignore_errors=True)
+        Path(self.lock.name).unlink(missing_ok=True)
+        self.__exit__()
         with contextlib.suppress(OSError):  # OUT/resume, once no pair has a checkpoint left
             self.folder.parent.rmdir()
 

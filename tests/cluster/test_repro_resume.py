@@ -170,3 +170,21 @@ def test_a_pair_killed_with_kill_9_loses_less_than_checkpoint_every_steps(tmp_pa
         for d in (tmp_path / "straight", out)
     )
     assert a == b and a[-1]["t_env"] >= 1000
+
+
+def test_a_pair_trained_twice_at_once_into_one_folder_is_refused(tmp_path):
+    from cluster.config.train import load_train_config
+    from cluster.errors import UsageError
+    from cluster.launch.local import LocalTrainer
+    from cluster.repro.resume import PairJournal
+
+    pair = Pair("vdn", "matrix/two_step")
+    resume = ResumeConfig(str(tmp_path), 40, "c1", {"seeds": 1, "overrides": []})
+    cfg = load_train_config("vdn", "matrix/two_step", [], ["run.t_max=40"])
+    busy = pytest.raises(UsageError, match="another process is training into")
+    with PairJournal(resume, pair) as first:
+        first.attach(LocalTrainer(cfg))
+        with busy, PairJournal(resume, pair) as second:
+            second.attach(LocalTrainer(cfg))
+    with PairJournal(resume, pair) as third:  # the first let go of it
+        third.attach(LocalTrainer(cfg))
