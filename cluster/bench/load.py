@@ -67,10 +67,17 @@ class LoadGenerator:
         for w in self.workers:
             w.daemon = True
             w.start()
+        deadline = time.monotonic() + 30.0  # until each one spins (a spawn imports first)
+        while time.monotonic() < deadline and min(map(_cpu_seconds, self.pids)) < 0.1:
+            time.sleep(0.05)
         return self
 
+    @property
+    def pids(self) -> list[int | None]:
+        return [w.pid for w in self.workers]
+
     def __exit__(self, *exc: object) -> None:
-        self.cpu_s = [_cpu_seconds(w.pid) for w in self.workers]
+        self.cpu_s = [_cpu_seconds(pid) for pid in self.pids]
         for w in self.workers:
             w.terminate()
         for w in self.workers:
