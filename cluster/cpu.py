@@ -7,7 +7,7 @@ Two settings, each made once per process:
   machine where other processes want the cores, the spinning threads take CPU from them,
   and a thread descheduled in turn holds up every region that waits for it: beside one busy
   loop on the 2-core machine, 10k env steps of `credit bench learn` on two threads did not
-  finish in 400 s against 8.4 s alone (issue 35). `prefer_sleeping_threads` sets
+  finish in 400 s against 8.4 s alone. `prefer_sleeping_threads` sets
   OMP_WAIT_POLICY=PASSIVE (threads block as soon as they are idle) unless the environment
   already says otherwise; OpenMP reads it once, as torch loads it, so `cluster/__init__.py`
   calls it before anything imports torch.

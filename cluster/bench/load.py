@@ -1,9 +1,9 @@
 """`credit bench load`: a load generator, one CPU-bound process per core (or `--procs`), to
 measure how training and benchmarks slow down on a shared machine.
 
-Each process spins in a pure-Python loop (no I/O, no syscalls) at normal priority, like the
-`python3 -c "while True: pass"` of issue 35. `LoadGenerator` is the same as a context
-manager (what `credit bench learn --compare-load` runs its loaded measurement under).
+Each process spins in a pure-Python loop (no I/O, no syscalls) at normal priority, as
+`python3 -c "while True: pass"` does. `LoadGenerator` is the same as a context manager (what
+`credit bench learn --compare-load` runs its loaded measurement under).
 """
 
 from __future__ import annotations
