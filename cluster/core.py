@@ -13,6 +13,7 @@ import copy
 import json
 import logging
 import os
+import random
 import shutil
 import sys
 import time
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 import yaml
 
+from actors.envs.base import rng_state, set_rng_state
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
@@ -31,6 +33,7 @@ from cluster.alloc import keep_freed_memory
 from cluster.config.plan import data_plan
 from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
+from cluster.cpu import ThreadGovernor
 from learner.precision import autocast, effective_precision
 from learner.registry import Learner, get_algo
 
@@ -118,7 +121,7 @@ class TrainerCore:
         self.cfg, self.E = cfg, n_ensemble
         self.checkpoint_dir = checkpoint_dir
         run = cfg.run
-        torch.set_num_threads(run.torch_threads)
+        self.threads = ThreadGovernor(run.torch_threads)
         if run.keep_freed_memory:
             keep_freed_memory()
         torch.manual_seed(run.seed)
@@ -262,8 +265,9 @@ class TrainerCore:
         self, path: Path, extra: dict | None = None, files: Callable[[Path], None] | None = None
     ) -> None:
         """Write the learner (networks, targets, optimisers, counters), loop counters, RNG
-        states and the loop's `extra` state to `path` atomically: a crash mid-write leaves the
-        previous checkpoint (or its `.old` copy) intact.
+        states (torch, numpy, python, the test worker's and its envs'), the learner metrics
+        summed since the last evaluation and the loop's `extra` state to `path` atomically:
+        a crash mid-write leaves the previous checkpoint (or its `.old` copy) intact.
 
         Args:
             path: the checkpoint folder.
@@ -282,7 +286,11 @@ class TrainerCore:
             "last_save_t": self.last_save_t,
             "wall_s": self.wall_s,
             "torch_rng": torch.get_rng_state(),
+            "numpy_rng": np.random.get_state(),
+            "python_rng": random.getstate(),
             "test_worker_rng": self.test_worker.gen.get_state(),
+            "test_env_rng": rng_state(self.test_venv),
+            "metric_sums": copy.deepcopy(self._metric_sums),
             "loop": extra or {},
         }
         torch.save(state, tmp / "trainer.pt")
@@ -319,6 +327,11 @@ class TrainerCore:
         self.started = time.monotonic()
         torch.set_rng_state(state["torch_rng"])
         self.test_worker.gen.set_state(state["test_worker_rng"])
+        if "numpy_rng" in state:  # absent from checkpoints of earlier commits
+            np.random.set_state(state["numpy_rng"])
+            random.setstate(state["python_rng"])
+            set_rng_state(self.test_venv, state["test_env_rng"])
+            self._metric_sums = state["metric_sums"]
         return state["loop"]
 
 

@@ -33,8 +33,10 @@ Behaviour of the two modes (the one place it is written down)
 * Resume: cluster mode keeps the buffer service's durable log and snapshots
   (`OUT/buffer/data`); local mode writes its tables into every checkpoint, in the same
   snapshot format (`checkpoint/buffer/member-k`, readable by `credit buffer verify`), and
-  restores them, so a resumed local run continues with the replay it had (exactly as if it
-  had not stopped, for envs without hidden random state). Each checkpoint writes the whole
+  restores them, so a resumed local run continues with the replay it had, exactly as if it
+  had not stopped: the checkpoint also holds every random state (torch, numpy, python, the
+  workers', the replay's sampling and the envs' own where they offer one,
+  `actors.envs.base.rng_state`; skirmish and matrix games do). Each checkpoint writes the whole
   tables, so mind run.save_interval with a large replay.capacity.
 * Typed messages: what crosses a process boundary is a frozen dataclass of
   `cluster.messages`; an actor receives only its `ActorConfig`, whose acting network is the
@@ -170,6 +172,9 @@ class TrainLoop:
     ) -> None:
         self.core, self.acting, self.data, self.stats = core, acting, data, stats
         self.stop_requested = False  # may be set from another thread to end `train` early
+        # more files for every checkpoint: each is called with the folder being written
+        # (before it replaces the previous checkpoint), e.g. a repro pair's evaluation log
+        self.checkpoint_files: list[Callable[[Path], None]] = []
 
     def train(
         self,
@@ -205,6 +210,7 @@ class TrainLoop:
                 self._update(pair)
             with timed("periodic"):  # evaluation, and the checkpoint ("periodic/checkpoint")
                 core.periodic(evaluated, bar, self._timed_save)
+            core.threads.tick()
         if bar:
             bar.close()
 
@@ -232,7 +238,14 @@ class TrainLoop:
         """Checkpoint the learner, the loop and (local mode, with `replay`) the buffer tables
         to `path`. Without them the checkpoint holds the networks, optimisers and counters
         only (a resumed run refills its replay)."""
-        self.core.save(path, self.state(), files=self.data.write if replay else None)
+
+        def files(folder: Path) -> None:
+            if replay:
+                self.data.write(folder)
+            for write in self.checkpoint_files:
+                write(folder)
+
+        self.core.save(path, self.state(), files=files)
 
     def restore(self, path: Path) -> None:
         """Continue from a checkpoint written by `save`."""

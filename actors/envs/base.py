@@ -160,6 +160,30 @@ class SerialVecEnv:
     def get_avail_actions(self) -> np.ndarray:
         return np.stack([np.asarray(e.get_avail_actions(), np.uint8) for e in self.envs])
 
+    def get_rng_state(self) -> list[Any]:
+        """Each env's generator state, None for an env that cannot give one."""
+        return [rng_state(env) for env in self.envs]
+
+    def set_rng_state(self, state: list[Any]) -> None:
+        for env, s in zip(self.envs, state, strict=True):
+            set_rng_state(env, s)
+
     def close(self) -> None:
         for env in self.envs:
             env.close()
+
+
+def rng_state(env: Any) -> Any:
+    """The random state of an env or VecEnv that offers one (`get_rng_state`), else None.
+
+    A checkpoint keeps it so that a resumed run draws the episodes an uninterrupted run would
+    have drawn (skirmish and matrix games: exactly; an env without `get_rng_state`, such as
+    real SMAC, continues from a fresh state)."""
+    get = getattr(env, "get_rng_state", None)
+    return get() if get is not None else None
+
+
+def set_rng_state(env: Any, state: Any) -> None:
+    """Restore what `rng_state` returned (nothing to do for None)."""
+    if state is not None:
+        env.set_rng_state(state)

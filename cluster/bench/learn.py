@@ -2,26 +2,35 @@
 reaches a target.
 
 The seeds train together in one seed-batched `LocalTrainer` (E = seeds, one set of tensors),
-with the run's shipped config plus `--set` overrides, and the learner's torch on every CPU
-this process may use (`--threads`; training's own default, `run.torch_threads`, is 1 thread,
-which is what several runs side by side want; on the 2-core machine two threads made the
-3-seed QMIX run about 1.5x faster, results/smac/README.md); every
+with the run's shipped config plus `--set` overrides, and the learner's torch on the CPUs
+this process may use less those other processes keep busy (`--threads 0`, the default:
+`run.torch_threads=0`, `cluster.cpu`; training's own default is 1 thread, which is what
+several runs side by side want; on the quiet 2-core machine two threads made the 3-seed QMIX
+run about 1.5x faster, results/smac/README.md); every
 `--test-interval` env steps each seed plays `run.test_episodes` greedy episodes. Training stops
 when every seed has reached the target or at `--t-max`. Wall time counts everything from the
 trainer's construction on (acting, updates and the evaluations themselves); the load average is
 sampled at every evaluation, so a busy machine shows in the JSON.
+
+`--compare-load` measures how the benchmark shares a CPU: it runs it twice in fresh
+processes, first on the machine as it is, then beside `--load-procs` CPU-bound processes
+(`credit bench load`: one per usable CPU by default), and prints both with the slowdown.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 
 import numpy as np
 import torch
 
 from cluster.bench.common import emit
+from cluster.bench.load import LoadGenerator
 from cluster.commands import add_command
 from cluster.config.train import load_train_config
 from cluster.errors import UsageError
@@ -45,19 +54,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--threads",
         type=int,
         default=0,
-        help="the learner's torch threads (run.torch_threads); 0: every CPU this process may use",
+        help="the learner's torch threads (run.torch_threads); 0: auto, the usable CPUs less "
+        "those other processes keep busy, measured again every 10 s",
     )
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out", help="also write the JSON here")
+    p.add_argument(
+        "--compare-load",
+        action="store_true",
+        help="run the benchmark quiet, then beside --load-procs CPU-bound processes, each in "
+        "a fresh process; print both and the slowdown",
+    )
+    p.add_argument(
+        "--load-procs",
+        type=int,
+        default=0,
+        help="with --compare-load: busy processes (0: one per usable CPU)",
+    )
     p.set_defaults(func=cmd_learn)
-
-
-def usable_cpus() -> int:
-    """CPUs this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def cmd_learn(args: argparse.Namespace) -> int:
@@ -66,12 +80,17 @@ def cmd_learn(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     if args.threads < 0:
-        raise UsageError(f"--threads must be >= 0 (0: every usable CPU), got {args.threads}")
-    threads = args.threads or usable_cpus()
+        raise UsageError(f"--threads must be >= 0 (0: auto), got {args.threads}")
+    if args.load_procs < 0:
+        raise UsageError(
+            f"--load-procs must be >= 0 (0: one per usable CPU), got {args.load_procs}"
+        )
+    if args.compare_load:
+        return compare_load(args)
     overrides = [
         f"run.t_max={args.t_max}",
         f"run.test_interval={args.test_interval}",
-        f"run.torch_threads={threads}",
+        f"run.torch_threads={args.threads}",
         *args.set,  # a --set run.torch_threads=... comes later and wins
     ]
     cfg = load_train_config(args.algo, args.env, [], overrides)
@@ -112,7 +131,9 @@ def cmd_learn(args: argparse.Namespace) -> int:
             "test_interval": args.test_interval,
             "test_episodes": cfg.run.test_episodes,
             "overrides": args.set,
-            "torch_threads": cfg.run.torch_threads,
+            "torch_threads": cfg.run.torch_threads or "auto",
+            "threads_used": trainer.core.threads.used,
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
             "env_steps": steps,
             "wall_s": wall,
             "median_env_steps": median(steps),
@@ -126,6 +147,46 @@ def cmd_learn(args: argparse.Namespace) -> int:
                 "max": max(loads, default=None),
             },
             "curve": curve,
+        },
+        args.out,
+    )
+    return 0
+
+
+def compare_load(args: argparse.Namespace) -> int:
+    """`--compare-load`: the benchmark quiet, then loaded, each in a fresh process."""
+    argv = [sys.executable, "-m", "cluster.cli", "bench", "learn", "--env", args.env]
+    argv += ["--algo", args.algo, "--target-win", str(args.target_win), "--seeds", str(args.seeds)]
+    argv += ["--t-max", str(args.t_max), "--test-interval", str(args.test_interval)]
+    argv += ["--threads", str(args.threads)]
+    for kv in args.set:
+        argv += ["--set", kv]
+
+    def measure() -> dict:
+        done = subprocess.run(argv, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise UsageError(f"{' '.join(argv[2:])} failed: {done.stderr[-2000:]}")
+        got = json.loads(done.stdout)
+        return {k: v for k, v in got.items() if k not in ("command", "time_utc", "machine")}
+
+    quiet = measure()
+    with LoadGenerator(args.load_procs) as load:
+        loaded = measure()
+
+    def ratio(key: str) -> float | None:
+        a, b = quiet[key], loaded[key]
+        return None if not a or b is None else round(b / a, 2)
+
+    per_step = [r["total_wall_s"] / max(1, r["t_env_end"]) for r in (quiet, loaded)]
+    emit(
+        "learn_compare_load",
+        {
+            "load_procs": load.procs,
+            "load_cpu_s": load.cpu_s,
+            "slowdown_median_wall": ratio("median_wall_s"),
+            "slowdown_wall_per_env_step": round(per_step[1] / per_step[0], 2),
+            "quiet": quiet,
+            "loaded": loaded,
         },
         args.out,
     )

@@ -170,7 +170,7 @@ def _config(args: argparse.Namespace, n: int, actor_cpus: float):
         "run.save_interval=0",
         f"cluster.actors={n}",
         f"cluster.actor_cpus={actor_cpus}",
-        "cluster.metrics.exporters=false",  # no exporters, no file-SD file shared with other runs
+        "cluster.metrics=false",  # no exporters, no file-SD file shared with other runs
         f"cluster.fsync={'false' if args.no_fsync else 'true'}",
         *args.set,
     ]

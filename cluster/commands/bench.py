@@ -11,6 +11,7 @@ import argparse
 from cluster.bench import codec as codec_bench
 from cluster.bench import env as env_bench
 from cluster.bench import learn as learn_bench
+from cluster.bench import load as load_bench
 from cluster.bench import matrix as matrix_bench
 from cluster.bench import memory as memory_bench
 from cluster.bench import open_loop as open_loop_bench
@@ -28,6 +29,7 @@ BENCHES: list = [
     scaling_bench,
     learn_bench,
     train_bench,
+    load_bench,
     update_bench,
     memory_bench,
     open_loop_bench,

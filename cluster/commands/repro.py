@@ -24,9 +24,11 @@ from cluster.repro import emcac as repro_emcac
 from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
 from cluster.repro import report as repro_report
+from cluster.repro import resume as repro_resume
 from cluster.repro import smac as repro_smac
 from cluster.repro.aggregate import REPS, curve_scores, matrix_scores, max_return
 from cluster.repro.fanout import FanOutConfig
+from cluster.repro.resume import ResumeConfig
 from learner.registry import ALGOS
 
 log = logging.getLogger(__name__)
@@ -121,6 +123,16 @@ def _add_run_options(m: argparse.ArgumentParser) -> None:
         default=REPS,
         help=f"bootstrap draws of each aggregate interval in summary.json (default {REPS})",
     )
+    m.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=repro_resume.CHECKPOINT_EVERY,
+        metavar="STEPS",
+        help="each pair checkpoints its whole state (networks, optimisers, replay, random "
+        "states, evaluation log) to OUT/resume/<env>__<algo>/ every STEPS env steps "
+        f"(default {repro_resume.CHECKPOINT_EVERY:,}; 0: never); running the same command "
+        "again continues unfinished pairs from there and skips finished ones",
+    )
 
 
 def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
@@ -139,6 +151,16 @@ def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
     except ValueError as e:
         raise UsageError(str(e)) from None
     return cfg
+
+
+def resume_config(args: argparse.Namespace, out: Path, overrides: list[str]) -> ResumeConfig:
+    """Where the pairs checkpoint and record themselves (UsageError for a bad interval)."""
+    if args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    commit = repro_resume.code_commit()
+    log.info("code at commit %s", commit)
+    settings = {"seeds": args.seeds, "overrides": list(overrides)}
+    return ResumeConfig(str(out.resolve()), args.checkpoint_every, commit, settings)
 
 
 def _run(run: Callable[[], list]) -> list:
@@ -319,9 +341,10 @@ def cmd_curves(
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
         checkpoints = out / "checkpoints" if args.checkpoints else None
+        resume = resume_config(args, out, overrides)
         curves = _run(
             lambda: repro_curves.run(
-                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max
+                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max, resume
             )
         )
     summary = repro_curves.summarise(curves)
@@ -377,8 +400,11 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         if not curves:
             raise UsageError(f"--summarise-only: no evaluation logs in {out / 'evals'}")
     else:
+        resume = resume_config(args, out, overrides)
         curves = _run(
-            lambda: repro_matrix.run(algos, games, args.seeds, overrides, fan, out / "evals", t_max)
+            lambda: repro_matrix.run(
+                algos, games, args.seeds, overrides, fan, out / "evals", t_max, resume
+            )
         )
         (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     summary = repro_matrix.summarise(curves, optimum)

@@ -123,7 +123,10 @@ class RunConfig:
             exactly as "shared" does); "auto", shared on the CPU, a copy otherwise. Ray
             rollout actors always act on their own CPU copies.
         torch_threads: intra-op threads of the learner's torch (the agent and critic nets
-            are small; more threads mostly spin against the actors for the same cores).
+            are small; more threads mostly spin against the actors for the same cores);
+            0 = "auto": the CPUs this process may use less those other processes keep
+            busy, at least 1, measured again every 10 s (`cluster.cpu`; a run whose thread
+            count changes may differ from another in its last bits).
         keep_freed_memory: keep freed heap memory in the learner's process instead of
             returning it to the OS after every update (glibc only: `cluster.alloc`); 17-23%
             cheaper updates on maps with large batches, at the price of a resident size that
@@ -167,8 +170,8 @@ class RunConfig:
         for name in ("t_max", "num_envs", "test_interval", "test_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.torch_threads < 1:
-            raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
+        if self.torch_threads < 0:
+            raise ValueError(f"torch_threads must be >= 1, or 0 for auto, got {self.torch_threads}")
         if self.save_interval < 0:
             raise ValueError(f"save_interval must be >= 0, got {self.save_interval}")
         if self.max_policy_lag < 0:

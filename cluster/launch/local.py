@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from actors.envs.base import rng_state, set_rng_state
 from actors.envs.registry import make_vec_env
 from actors.rollout import RolloutWorker
 from buffer_service.episode import EpisodeBatch
@@ -156,11 +157,16 @@ class LocalActing:
         """No exporters in local mode."""
 
     def state(self) -> dict[str, Any]:
-        return {"worker_rng": self.worker.gen.get_state(), "episode_seq": self.worker.episode_seq}
+        return {
+            "worker_rng": self.worker.gen.get_state(),
+            "episode_seq": self.worker.episode_seq,
+            "env_rng": rng_state(self.worker.venv),
+        }
 
     def load_state(self, state: dict[str, Any]) -> None:
         self.worker.gen.set_state(state["worker_rng"])
         self.worker.episode_seq = state["episode_seq"]
+        set_rng_state(self.worker.venv, state.get("env_rng"))
 
 
 class LocalTrainer:

@@ -28,14 +28,14 @@ import logging
 import os
 import shutil
 import tempfile
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,8 @@ LEARNER_KEYS = (
 class Curve:
     """Every evaluation of one (algo, env) pair: t_env [K]; won and returns [K][seeds];
     learner diagnostics at each evaluation (means over seeds and over the updates since the
-    previous evaluation; only keys the learner has); wall [K] seconds since the pair started."""
+    previous evaluation; only keys the learner has); wall [K] seconds since the pair started;
+    commits: the code's commits it was trained at (two or more if it was resumed at another)."""
 
     algo: str
     env: str
@@ -72,6 +73,7 @@ class Curve:
     wall_s: float
     learner: list[dict[str, float]] = field(default_factory=list)
     wall: list[float] = field(default_factory=list)
+    commits: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,7 @@ def run_pair(
     overrides: list[str],
     threads: int,
     checkpoint: bool = False,
+    resume: ResumeConfig | None = None,
     report: Callable[[str], None] | None = None,
 ) -> PairOutput:
     """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer.
@@ -99,6 +102,8 @@ def run_pair(
         checkpoint: also return the final checkpoint (every seed, `credit train`'s format:
             networks, optimisers and counters, without the replay, which on the larger maps
             is gigabytes).
+        resume: where the pair checkpoints every `resume.every` env steps and continues
+            from (`cluster.repro.resume`); None: no checkpoints.
         report: called with one JSON line per evaluation (the pair's evaluation log).
     """
     import torch
@@ -107,35 +112,26 @@ def run_pair(
     from cluster.launch.local import LocalTrainer
 
     torch.set_num_threads(threads)
-    cfg = load_train_config(algo, env, [], overrides)
-    trainer = LocalTrainer(cfg, n_ensemble=seeds)
-    curve = Curve(algo, env, [], [], [], 0.0)
-    walls: list[float] = []
-    started = time.monotonic()
+    with PairJournal(resume, Pair(algo, env), report) as journal:
+        cfg = load_train_config(algo, env, [], overrides + journal.overrides())
+        trainer = LocalTrainer(cfg, n_ensemble=seeds)
+        journal.attach(trainer)
 
-    def on_eval(records) -> None:
-        curve.t_env.append(records[0].t_env)
-        curve.won.append([float(r.test_won_mean or 0.0) for r in records])
-        curve.returns.append([r.test_return_mean for r in records])
-        means = trainer.core.take_metric_means()  # over the updates since the last evaluation
-        diag = {k: v for k, v in means.items() if k in LEARNER_KEYS}
-        curve.learner.append(diag)
-        walls.append(round(time.monotonic() - started, 1))
-        if report is not None:
-            line = {
+        def on_eval(records) -> None:
+            means = trainer.core.take_metric_means()  # over the updates since the last evaluation
+            row = {
                 "env": env,
                 "algo": algo,
                 "t_env": records[0].t_env,
-                "won": curve.won[-1],
-                "returns": curve.returns[-1],
-                "wall_s": walls[-1],
-                **diag,
+                "won": [float(r.test_won_mean or 0.0) for r in records],
+                "returns": [r.test_return_mean for r in records],
             }
-            report(json.dumps(line))
+            journal.add({**row, **{k: v for k, v in means.items() if k in LEARNER_KEYS}})
 
-    trainer.train(on_eval=on_eval)
-    if not curve.t_env or curve.t_env[-1] != trainer.core.t_env:
-        on_eval(trainer.core.evaluate())
+        trainer.train(on_eval=on_eval)
+        if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
+            on_eval(trainer.core.evaluate())
+        journal.finish()
     files: tuple[tuple[str, bytes], ...] = ()
     if checkpoint:
         with tempfile.TemporaryDirectory() as tmp:
@@ -146,17 +142,8 @@ def run_pair(
                 for f in sorted(root.rglob("*"))
                 if f.is_file()
             )
-    done = Curve(
-        algo,
-        env,
-        curve.t_env,
-        curve.won,
-        curve.returns,
-        time.monotonic() - started,
-        curve.learner,
-        walls,
-    )
-    return PairOutput(done, files)
+    curve = curve_of(algo, env, journal.rows)
+    return PairOutput(replace(curve, wall_s=journal.wall_s, commits=journal.commits), files)
 
 
 def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None:
@@ -188,20 +175,24 @@ def load_evals(
             if until is not None:
                 end = next((i for i, r in enumerate(rows) if r["t_env"] >= until), len(rows) - 1)
                 rows = rows[: end + 1]
-            diag = [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows]
-            curves.append(
-                Curve(
-                    algo,
-                    env,
-                    [r["t_env"] for r in rows],
-                    [r["won"] for r in rows],
-                    [r["returns"] for r in rows],
-                    float(rows[-1]["wall_s"]),
-                    diag,
-                    [float(r["wall_s"]) for r in rows],
-                )
-            )
+            curves.append(curve_of(algo, env, rows))
     return curves
+
+
+def curve_of(algo: str, env: str, rows: list[dict]) -> Curve:
+    """A pair's curve from its evaluation log's rows (its wall time: the last row's)."""
+    commits = list(dict.fromkeys(r["commit"] for r in rows if "commit" in r))
+    return Curve(
+        algo,
+        env,
+        [r["t_env"] for r in rows],
+        [r["won"] for r in rows],
+        [r["returns"] for r in rows],
+        float(rows[-1]["wall_s"]),
+        [{k: r[k] for k in LEARNER_KEYS if k in r} for r in rows],
+        [float(r["wall_s"]) for r in rows],
+        commits,
+    )
 
 
 def steps_to(t_env: np.ndarray, median_curve: np.ndarray, level: float) -> int | None:
@@ -248,6 +239,7 @@ def summarise(curves: list[Curve]) -> dict:
         cell["median_return_last10"] = float(np.median(np.asarray(c.returns)[-LAST:].mean(0)))
         cell["t_env"] = int(c.t_env[-1])
         cell["wall_s"] = round(c.wall_s, 1)
+        cell["commits"] = c.commits
         out.setdefault(c.env, {})[c.algo] = cell
     return out
 
@@ -327,19 +319,33 @@ def run(
     log_dir: Path | None = None,
     checkpoint_dir: Path | None = None,
     total_steps: int = 0,
+    resume: ResumeConfig | None = None,
 ) -> list[Curve]:
     """Every (algo, env) pair where `fan` says; curves in (env, algo) order. Each pair's
     evaluations go to log_dir/<env>__<algo>.jsonl as they happen and, with `checkpoint_dir`,
     its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes. With
     `total_steps` (every pair's t_max together), a status line shows the env steps done and
-    each pair's latest median win rate."""
+    each pair's latest median win rate. With `resume` (and its output folder), pairs
+    checkpoint, continue from their checkpoints and are skipped when already finished
+    (`cluster.repro.resume`)."""
     pairs = [Pair(a, g) for g in envs for a in algos]
 
     def on_result(pair: Pair, out: PairOutput) -> None:
         if checkpoint_dir is not None:
             write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
 
-    args = (seeds, overrides, 1, checkpoint_dir is not None)
+    args = (seeds, overrides, 1, checkpoint_dir is not None, resume)
     status = StatusLine(total_steps, "won", "win") if total_steps else None
-    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result, status)
+    store = None
+    if resume is not None and resume.out is not None:
+        store = PairStore(resume, _encode, _decode)
+    outputs = run_pairs(run_pair, pairs, args, fan, log_dir, on_result, status, store)
     return [o.curve for o in outputs]
+
+
+def _encode(out: PairOutput) -> dict:
+    return dict(out.curve.__dict__)  # the final checkpoint's files are in OUT/checkpoints
+
+
+def _decode(d: dict) -> PairOutput:
+    return PairOutput(Curve(**d))

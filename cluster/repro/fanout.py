@@ -9,10 +9,14 @@ the driver's output folder and a run that dies leaves every evaluation it made. 
 logs one line per pair as it starts (where), restarts, and finishes (wall time).
 
 On a cluster every pair is one Ray task asking for `cpus_per_pair` CPUs. Ray retries a task
-whose worker process or node dies (`max_retries`); the retry starts the pair again from
-scratch with the same seeds, so its result is the one an uninterrupted run gives, and the
-collector drops the lost attempt's log lines. An exception raised by the pair itself (a bad
-config, a non-finite loss) is not retried: it ends the run, as it does locally.
+whose worker process or node dies (`max_retries`); the retry continues the pair from its last
+checkpoint where it can read it (`cluster.repro.resume`), else starts it again from scratch
+with the same seeds, so its result is the one an uninterrupted run gives, and the collector
+replaces the lost attempt's log lines with the checkpoint's. An exception raised by the pair
+itself (a bad config, a non-finite loss) is not retried: it ends the run, as it does locally.
+
+With a `store` (`cluster.repro.resume.PairStore`), pairs it records as finished are not run
+again: their results come from it, and each new result is recorded as it arrives.
 
 The Ray side (tasks, the event board, shipping the code to the nodes) is
 `cluster.repro.fanout_ray`, imported only when an address is given.
@@ -94,11 +98,14 @@ class PairEvent:
 
     Args:
         pair: the pair.
-        kind: "started" (a new attempt at the pair), "evaluated" or "finished" (the last
-            event of an attempt that returned its result).
+        kind: "started" (a new attempt at the pair), "resumed" (the attempt continues from
+            a checkpoint), "evaluated", "checkpointed" or "finished" (the last event of an
+            attempt that returned its result).
         attempt: "<host>:<pid>:<start time ns>" of the attempt, so that lines of an attempt
             that died are told from the retry's.
-        text: "evaluated": one JSON line of the pair's evaluation log.
+        text: "evaluated": one JSON line of the pair's evaluation log; "resumed": JSON
+            {t_env, lines: the log's lines up to the checkpoint}; "checkpointed": JSON
+            {t_env, bytes, folder}.
         wall_s: "finished": seconds the attempt took.
     """
 
@@ -127,6 +134,14 @@ class Reporter:
 
     def __call__(self, line: str) -> None:
         self.sink.put(PairEvent(self.pair, "evaluated", self.attempt, line))
+
+    def resumed(self, t_env: int, lines: list[str]) -> None:
+        """The attempt continues from a checkpoint at `t_env` whose log is `lines`."""
+        text = json.dumps({"t_env": t_env, "lines": lines})
+        self.sink.put(PairEvent(self.pair, "resumed", self.attempt, text))
+
+    def checkpointed(self, info: dict) -> None:
+        self.sink.put(PairEvent(self.pair, "checkpointed", self.attempt, json.dumps(info)))
 
 
 PairFn = Callable[..., Any]  # fn(algo, env, *args, report=Callable[[str], None]) -> result
@@ -200,6 +215,28 @@ class Collector:
         if self.bar is not None:
             self.bar.close()
 
+    def _resumed(self, pair: Pair, resumed: dict) -> None:
+        """The log becomes the checkpoint's: lines past it were made by the lost attempt."""
+        lines = resumed["lines"]
+        if self.log_dir is not None:
+            (self.log_dir / f"{pair.key}.jsonl").write_text("".join(x + "\n" for x in lines))
+        if lines:
+            self.latest[pair] = json.loads(lines[-1])
+        self._say(
+            "pair %s resumed from its checkpoint at t_env %d (%d evaluations kept)",
+            pair.label,
+            resumed["t_env"],
+            len(lines),
+        )
+
+    def skip(self, pair: Pair) -> None:
+        """A pair that finished in an earlier run: counted as done, its log left as it is."""
+        self.finished.add(pair)
+        path = None if self.log_dir is None else self.log_dir / f"{pair.key}.jsonl"
+        if path is not None and path.exists() and path.read_text().strip():
+            self.latest[pair] = json.loads(path.read_text().splitlines()[-1])
+        self._say("pair %s finished in an earlier run; not run again", pair.label)
+
     def handle(self, event: PairEvent) -> None:
         pair = event.pair
         if event.kind == "started":
@@ -226,6 +263,18 @@ class Collector:
                     f.write(event.text.rstrip("\n") + "\n")
             if self.bar is not None:
                 self.latest[pair] = json.loads(event.text)
+        elif event.kind == "resumed":
+            self._resumed(pair, json.loads(event.text))
+        elif event.kind == "checkpointed":
+            info = json.loads(event.text)
+            self._say(
+                "pair %s checkpoint at t_env %d: %.1f MB in %s (up to twice that while the "
+                "next is written)",
+                pair.label,
+                info["t_env"],
+                info["bytes"] / 1e6,
+                info["folder"],
+            )
         elif event.kind == "finished":
             self.finished.add(pair)
             self._say(
@@ -245,6 +294,7 @@ def run_pairs(
     log_dir: Path | None = None,
     on_result: Callable[[Pair, Any], None] | None = None,
     status: StatusLine | None = None,
+    store: Any = None,
 ) -> list:
     """Run `fn(pair.algo, pair.env, *args, report=...)` for every pair where `cfg` says.
 
@@ -256,6 +306,8 @@ def run_pairs(
         log_dir: folder for the evaluation logs, None for none.
         on_result: called in the driver with each pair's result as it arrives.
         status: the status line to keep on the terminal, None for none.
+        store: finished pairs' results (`cluster.repro.resume.PairStore`): pairs it holds
+            are not run (nor handed to `on_result`), new results are recorded in it.
 
     Returns:
         fn's results, one per pair in `pairs` order.
@@ -264,21 +316,35 @@ def run_pairs(
     `cfg.max_retries` times; an exception of `fn` itself is raised as it is.
     """
     collector = Collector(pairs, log_dir, status)
-    arrived = on_result or (lambda pair, result: None)
+    results = {}
+
+    def arrived(pair: Pair, result: Any) -> None:
+        if store is not None:
+            store.record(pair, result)
+        if on_result is not None:
+            on_result(pair, result)
+
     try:
-        if cfg.address:
+        for p in pairs:
+            if store is not None and (done := store.finished(p)) is not None:
+                results[p] = done
+                collector.skip(p)
+        todo = [p for p in pairs if p not in results]
+        if todo and cfg.address:
             from cluster.repro.fanout_ray import run_ray  # imports ray
 
-            return run_ray(fn, pairs, args, cfg, collector, arrived)
-        if cfg.workers <= 1:
-            results = []
-            for p in pairs:
-                results.append(run_pair(fn, p, args, _Direct(collector)))
-                arrived(p, results[-1])
-            return results
-        return _run_pool(fn, pairs, args, cfg.workers, collector, arrived)
+            results.update(zip(todo, run_ray(fn, todo, args, cfg, collector, arrived), strict=True))
+        elif todo and cfg.workers <= 1:
+            for p in todo:
+                results[p] = run_pair(fn, p, args, _Direct(collector))
+                arrived(p, results[p])
+        elif todo:
+            results.update(
+                zip(todo, _run_pool(fn, todo, args, cfg.workers, collector, arrived), strict=True)
+            )
     finally:
         collector.close()
+    return [results[p] for p in pairs]
 
 
 class _Direct:
@@ -295,9 +361,12 @@ class _Direct:
 _pool_events: Any = None  # the event queue of a local pool's worker process
 
 
-def _pool_init(events: Any) -> None:
+def _pool_init(events: Any, driver: int) -> None:
+    from cluster.repro.resume import die_with_parent
+
     global _pool_events
     _pool_events = events
+    die_with_parent(driver)
 
 
 def _pool_pair(fn: PairFn, pair: Pair, args: tuple) -> Any:
@@ -325,7 +394,9 @@ def _run_pool(
     """Today's local mode: a process pool of `workers`; events come back on a queue the
     workers inherit."""
     events = multiprocessing.get_context().Queue()
-    with ProcessPoolExecutor(workers, initializer=_pool_init, initargs=(events,)) as pool:
+    with ProcessPoolExecutor(
+        workers, initializer=_pool_init, initargs=(events, os.getpid())
+    ) as pool:
         futures = {pool.submit(_pool_pair, fn, p, args): p for p in pairs}
         pending = set(futures)
         while pending:
@@ -335,7 +406,7 @@ def _run_pool(
                 arrived(futures[f], f.result())  # raises the pair's exception here
     # A worker puts its last events before it returns, but the queue's feeder thread may
     # deliver them after the result: wait for every pair's "finished".
-    while len(collector.finished) < len(pairs):
+    while not collector.finished.issuperset(pairs):
         before = len(collector.finished)
         _drain_queue(events, collector, block_s=10.0)
         if len(collector.finished) == before:

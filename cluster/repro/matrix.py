@@ -10,15 +10,15 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from actors.envs.registry import make_env
 from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +29,8 @@ ALGOS = ("iql", "vdn", "qmix", "qmix_ns", "rdn")
 @dataclass(frozen=True)
 class Curve:
     """Test return of every seed at every evaluation: t_env [K], returns [K, seeds]; for RDN,
-    what its critic learned (cluster.inspect.rdn_diagnostics), one entry per seed."""
+    what its critic learned (cluster.inspect.rdn_diagnostics), one entry per seed; the code's
+    commits it was trained at (two or more if it was resumed at another)."""
 
     algo: str
     game: str
@@ -37,6 +38,7 @@ class Curve:
     returns: list[list[float]]
     wall_s: float
     rdn_diagnostics: list[dict] | None = None
+    commits: list[str] = field(default_factory=list)
 
 
 def run_pair(
@@ -45,40 +47,39 @@ def run_pair(
     seeds: int,
     overrides: list[str],
     threads: int,
+    resume: ResumeConfig | None = None,
     report: Callable[[str], None] | None = None,
 ) -> Curve:
     """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer; `report` gets one
-    JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s})."""
+    JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s, commit}); `resume`:
+    where it checkpoints and continues from (`cluster.repro.resume`), None for nowhere."""
     import torch
 
     from cluster.config.train import load_train_config
     from cluster.launch.local import LocalTrainer
 
     torch.set_num_threads(threads)
-    cfg = load_train_config(algo, game, [], overrides)
-    trainer = LocalTrainer(cfg, n_ensemble=seeds)
-    t_env: list[int] = []
-    returns: list[list[float]] = []
+    with PairJournal(resume, Pair(algo, game), report) as journal:
+        cfg = load_train_config(algo, game, [], overrides + journal.overrides())
+        trainer = LocalTrainer(cfg, n_ensemble=seeds)
+        journal.attach(trainer)
 
-    started = time.monotonic()
+        def on_eval(records) -> None:
+            returns = [r.test_return_mean for r in records]
+            journal.add({"env": game, "algo": algo, "t_env": records[0].t_env, "returns": returns})
 
-    def on_eval(records) -> None:
-        t_env.append(records[0].t_env)
-        returns.append([r.test_return_mean for r in records])
-        if report is not None:
-            wall = round(time.monotonic() - started, 1)
-            line = {"env": game, "algo": algo, "t_env": t_env[-1], "returns": returns[-1]}
-            report(json.dumps({**line, "wall_s": wall}))
-
-    trainer.train(on_eval=on_eval)
-    if not t_env or t_env[-1] != trainer.core.t_env:
-        on_eval(trainer.core.evaluate())
+        trainer.train(on_eval=on_eval)
+        if not journal.rows or journal.rows[-1]["t_env"] != trainer.core.t_env:
+            on_eval(trainer.core.evaluate())
+        journal.finish()
     diagnostics = None
     if algo == "rdn":
         from cluster.inspect.rdn_diagnostics import diagnose
 
         diagnostics = diagnose(trainer.core.learner, game, cfg.env.args)
-    return Curve(algo, game, t_env, returns, time.monotonic() - started, diagnostics)
+    rows = journal.rows
+    t_env, returns = [r["t_env"] for r in rows], [r["returns"] for r in rows]
+    return Curve(algo, game, t_env, returns, journal.wall_s, diagnostics, journal.commits)
 
 
 def load_evals(log_dir: Path, algos: list[str], games: list[str]) -> list[Curve]:
@@ -96,7 +97,9 @@ def load_evals(log_dir: Path, algos: list[str], games: list[str]) -> list[Curve]
             if rows:
                 t_env = [r["t_env"] for r in rows]
                 returns = [r["returns"] for r in rows]
-                curves.append(Curve(algo, game, t_env, returns, float(rows[-1]["wall_s"])))
+                commits = sorted({r["commit"] for r in rows if "commit" in r})
+                wall_s = float(rows[-1]["wall_s"])
+                curves.append(Curve(algo, game, t_env, returns, wall_s, None, commits))
     return curves
 
 
@@ -113,6 +116,7 @@ def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
             "runs": len(final),
             "final_returns": [float(x) for x in final],
             "wall_s": round(c.wall_s, 1),
+            "commits": c.commits,
         }
     return out
 
@@ -150,13 +154,20 @@ def run(
     fan: FanOutConfig,
     log_dir: Path | None = None,
     total_steps: int = 0,
+    resume: ResumeConfig | None = None,
 ) -> list[Curve]:
     """Every (algo, game) pair where `fan` says; curves in (game, algo) order, evaluations in
     log_dir/<game>__<algo>.jsonl as they happen. With `total_steps` (every pair's t_max
-    together), a status line shows the env steps done and each pair's latest median return."""
+    together), a status line shows the env steps done and each pair's latest median return.
+    With `resume` (and its output folder), pairs checkpoint, continue from their checkpoints
+    and are skipped when already finished (`cluster.repro.resume`)."""
     pairs = [Pair(a, g) for g in games for a in algos]
     status = StatusLine(total_steps, "returns", "return") if total_steps else None
-    return run_pairs(run_pair, pairs, (seeds, overrides, 1), fan, log_dir, None, status)
+    store = None
+    if resume is not None and resume.out is not None:
+        store = PairStore(resume, lambda c: dict(c.__dict__), lambda d: Curve(**d))
+    args = (seeds, overrides, 1, resume)
+    return run_pairs(run_pair, pairs, args, fan, log_dir, None, status, store)
 
 
 def optimum_of(game: str, env_args: dict) -> float:

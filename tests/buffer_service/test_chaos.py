@@ -49,22 +49,24 @@ def test_kill_9_at_random_moments_loses_and_duplicates_no_acknowledged_episode(t
         subprocess.Popen([*cmd, str(i), str(PER_CLIENT), str(files[i])], cwd=REPO)
         for i in range(CLIENTS)
     ]
+    acked_at_kills = []  # episodes acknowledged when each kill was sent
     try:
         while sum(len(_acked(f)[0]) for f in files) < 50:  # the clients are under way
             time.sleep(0.05)
-        for i in range(KILLS):
+        for _ in range(KILLS):
             time.sleep(rng.uniform(0.05, 1.5))
+            acked_at_kills.append(sum(len(_acked(f)[0]) for f in files))
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(10)
-            if i == 0:  # (counted at the first kill: on an idle machine the clients may
-                during = sum(len(_acked(f)[0]) for f in files)  # finish before the last)
             proc = _serve_cli(snap, port, port_file, CAPACITY)  # same port: the clients reconnect
         for c in clients:
             assert c.wait(600) == 0
         for f in files:
             seqs, other = _acked(f)
             assert other == ["done"] and seqs == list(range(PER_CLIENT)), (f, other)
-        assert 0 < during < CLIENTS * PER_CLIENT  # the kills fell while clients inserted
+        # kills fell while the clients inserted (whether the last ones still did depends on
+        # how long the restarts took against how fast the clients were)
+        assert any(0 < n < CLIENTS * PER_CLIENT for n in acked_at_kills), acked_at_kills
         audit(port)
     finally:
         for c in clients:

@@ -176,3 +176,17 @@ def test_server_counts_requests_the_limiter_held_back():
     finally:
         client.close()
         srv.stop(snapshot=False)
+
+
+@pytest.mark.parametrize("no_fsync", [False, True])
+def test_the_benchmarks_config_loads(no_fsync):
+    """Every key the benchmark sets is one the config takes (a renamed key failed here only
+    when the benchmark ran)."""
+    import argparse
+
+    from cluster.bench.scaling import _config
+
+    args = argparse.Namespace(algo="rdn", env="skirmish/3m", no_fsync=no_fsync, set=[])
+    cfg = _config(args, 4, 0.5)
+    assert (cfg.cluster.actors, cfg.cluster.metrics) == (4, False)
+    assert cfg.cluster.fsync is not no_fsync

@@ -31,7 +31,7 @@ def env(tmp_path):
 def _train(mode: str, out: Path, env: dict, seed: int, t_max: int, *args: str) -> dict:
     cmd = [sys.executable, "-m", "cluster.cli", "train", "--mode", mode, "--out", str(out)]
     cmd += ["--seed", str(seed), "--t-max", str(t_max), *args]
-    cmd += ["--set", "replay.capacity=100000", "--set", "cluster.metrics.exporters=false"]
+    cmd += ["--set", "replay.capacity=100000", "--set", "cluster.metrics=false"]
     if mode == "cluster":
         cmd += ["--actors", "1"]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)

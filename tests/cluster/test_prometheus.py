@@ -145,6 +145,23 @@ def test_by_default_prometheus_scrapes_every_live_runs_targets(tmp_path, monkeyp
     assert job["file_sd_configs"][0]["files"] == [str(tmp_path / "state/metrics/runs/*.json")]
 
 
+class _Targets:
+    """What a wait is for, with Prometheus's view of every target (health, last error)
+    at the moment a failed wait prints it."""
+
+    def __init__(self, url: str, what: str):
+        self.url, self.what = url, what
+
+    def __str__(self) -> str:
+        import json
+        import urllib.request
+
+        with urllib.request.urlopen(f"{self.url}/api/v1/targets", timeout=10) as r:
+            active = json.load(r)["data"]["activeTargets"]
+        seen = [(t["scrapeUrl"], t["health"], t["lastError"]) for t in active]
+        return f"{self.what}; the targets: {seen}"
+
+
 @needs_prometheus
 @pytest.mark.slow
 def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
@@ -181,8 +198,17 @@ def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
             return {r["metric"]["run"] for r in rows}
 
         wait_for(lambda: updating_runs() == labels, timeout_s=120, what="both runs' learners")
-        scraped = prom.query(state.url, 'up{job="credit"} == 1')
-        assert len(scraped) == 6  # every exporter of both runs answers
+        # Every exporter of both runs answers. Not at one instant: a learner whose updates
+        # are scraped says nothing of the run's other targets, whose first scrape may not
+        # have come yet (each target has its own offset in the scrape interval), and on a
+        # busy machine a scrape can miss its 0.8 s timeout. Within the last minute each
+        # target answered at least once.
+        answered = 'max_over_time(up{job="credit"}[1m]) == 1'
+        scraped = wait_for(
+            lambda: (rows := prom.query(state.url, answered)) and len(rows) == 6 and rows,
+            timeout_s=60,
+            what=_Targets(state.url, "all six exporters to answer a scrape"),
+        )
         assert {r["metric"]["run"] for r in scraped} == labels
         first, first_log = procs.pop("first")
         first.send_signal(signal.SIGINT)

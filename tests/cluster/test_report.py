@@ -83,11 +83,14 @@ def test_repro_matrix_summarise_only_on_the_committed_logs(tmp_path, capsys):
     assert set(agg["across_envs"]) == {"iql", "vdn", "qmix", "qmix_ns", "rdn"}
     assert len(agg["probability_of_improvement"]) == 10  # 5 algorithms, each pair once
     assert all(c["runs"] == 8 for c in agg["across_envs"].values())
-    # The committed summary's per-cell numbers are unchanged by the new entry.
+    # The committed summary's per-cell numbers are unchanged by the new entry; the committed
+    # logs predate the per-line commit, so their cells list no commits.
     committed = json.loads((ROOT / "results" / "matrix" / "summary.json").read_text())
     for algo in ("iql", "rdn"):
+        assert all(cell["commits"] == [] for cell in summary[algo].values())
         assert summary[algo] == {
-            g: {**c, "wall_s": summary[algo][g]["wall_s"]} for g, c in committed[algo].items()
+            g: {**c, "wall_s": summary[algo][g]["wall_s"], "commits": []}
+            for g, c in committed[algo].items()
         }
     for name in ("report.html", "aggregate_intervals.png", "aggregate_profiles.png"):
         assert (out / name).stat().st_size > 5_000, name

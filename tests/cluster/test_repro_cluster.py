@@ -113,11 +113,14 @@ def test_matrix_on_the_cluster_gives_the_local_numbers(tmp_path, env, cluster, l
 
 
 def test_a_killed_pair_is_retried_and_the_output_is_whole(tmp_path, env, cluster, local_matrix):
+    """The retry continues from the pair's last checkpoint (on this one machine, the node
+    that runs it can read it) and the output is the one of a run that was not interrupted."""
     out = tmp_path / "matrix"
     log_path = tmp_path / "driver.log"
+    cmd = [*MATRIX, "--out", str(out), "--address", "auto", "--checkpoint-every", "100"]
     with open(log_path, "w") as log:
         driver = subprocess.Popen(
-            [sys.executable, "-m", "cluster.cli", *MATRIX, "--out", str(out), "--address", "auto"],
+            [sys.executable, "-m", "cluster.cli", *cmd],
             cwd=ROOT,
             env=env,
             stdout=log,
@@ -131,11 +134,10 @@ def test_a_killed_pair_is_retried_and_the_output_is_whole(tmp_path, env, cluster
                 what="the vdn pair's start",
                 proc=driver,
             )
-            evals = out / "evals" / "matrix-two_step__vdn.jsonl"
             wait_for(
-                lambda: evals.exists() and evals.read_text().strip(),
+                lambda: (out / "resume" / "matrix-two_step__vdn" / "pair.json").exists(),
                 timeout_s=120,
-                what="the vdn pair's first evaluation",
+                what="the vdn pair's first checkpoint",
                 proc=driver,
             )
             os.kill(pid, signal.SIGKILL)  # the Ray worker process running the pair
@@ -145,6 +147,7 @@ def test_a_killed_pair_is_retried_and_the_output_is_whole(tmp_path, env, cluster
                 driver.kill()
     text = log_path.read_text()
     assert "pair vdn@matrix/two_step restarted on" in text and "attempt 2" in text
+    assert "pair vdn@matrix/two_step resumed from its checkpoint at t_env" in text
     assert "pair qmix@matrix/two_step restarted" not in text
     _assert_same_results(local_matrix, out)
 

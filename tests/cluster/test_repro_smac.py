@@ -51,7 +51,7 @@ def keep_torch_threads():
 
 
 def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys, keep_torch_threads):
-    from cluster.bench.learn import usable_cpus
+    from cluster.cpu import usable_cpus
 
     out = tmp_path / "learn.json"
     argv = ["bench", "learn", "--env", "skirmish/3m", "--algo", "vdn", "--seeds", "2"]
@@ -67,12 +67,15 @@ def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys, keep_torch
     assert {"min", "mean", "max"} <= set(got["load_avg_1m"])
     assert all(len(c["won"]) == 2 for c in got["curve"])
     assert json.loads(capsys.readouterr().out)["benchmark"] == "learn"
-    # every usable CPU unless told otherwise, and what the learner's torch then used
-    assert got["torch_threads"] == usable_cpus() == got["machine"]["torch_threads"]
+    # "auto" unless told otherwise: the usable CPUs less those busy elsewhere, at least 1
+    assert got["torch_threads"] == "auto" and got["omp_wait_policy"] == "PASSIVE"
+    assert all(1 <= n <= usable_cpus() for n in got["threads_used"])
+    assert got["machine"]["torch_threads"] == got["threads_used"][-1]
     argv += ["--threads", "1", "--t-max", "250"]
     assert main(argv) == 0
     got = json.loads(out.read_text())
     assert got["torch_threads"] == 1 == got["machine"]["torch_threads"]
+    assert got["threads_used"] == [1]
 
 
 @pytest.mark.parametrize(

@@ -176,9 +176,11 @@ def test_a_wheel_installed_outside_the_checkout_trains_with_the_shipped_layers(t
     (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
+    outside = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     where = subprocess.run(
         [str(venv / "bin" / "python"), "-c", "import cluster.cli; print(cluster.cli.__file__)"],
         cwd=elsewhere,
+        env=outside,  # as run_credit: a PYTHONPATH at a checkout would import that instead
         capture_output=True,
         text=True,
         check=True,

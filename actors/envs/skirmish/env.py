@@ -93,6 +93,17 @@ class SkirmishVecEnv:
             np.random.default_rng(None if seed is None else seed + k) for k in range(self.num_envs)
         ]
 
+    def get_rng_state(self) -> list[dict]:
+        """Every env's generator state (what a checkpoint keeps to replay the same episodes)."""
+        return [g.bit_generator.state for g in self.rngs]
+
+    def set_rng_state(self, state: list[dict]) -> None:
+        """Restore what `get_rng_state` returned (same number of envs)."""
+        if len(state) != self.num_envs:
+            raise EnvError(f"rng state of {len(state)} envs for {self.num_envs} envs")
+        for g, s in zip(self.rngs, state, strict=True):
+            g.bit_generator.state = s
+
     def reset(self) -> None:
         """Start a new episode in every env."""
         envs = np.arange(self.num_envs)
@@ -277,6 +288,12 @@ class SkirmishEnv:
         if seed is not None:
             self.vec.seed(seed)
         return self.vec._seed
+
+    def get_rng_state(self) -> list[dict]:
+        return self.vec.get_rng_state()
+
+    def set_rng_state(self, state: list[dict]) -> None:
+        self.vec.set_rng_state(state)
 
     def render(self) -> None:
         """Use `actors.envs.skirmish.render.render_episode` for GIFs."""
