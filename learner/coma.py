@@ -1,4 +1,4 @@
-"""COMA, counterfactual multi-agent policy gradients (Foerster et al., 2018): the seed's PG
+"""COMA, counterfactual multi-agent policy gradients (Foerster et al., 2018): the dissertation's PG
 baseline.
 
 A centralised critic Q(s, u^-a, ·) gives, for agent a, the value of each of a's actions with
@@ -55,7 +55,7 @@ def coma_advantages(q: torch.Tensor, logp: torch.Tensor, actions: torch.Tensor) 
 
 @dataclass(frozen=True)
 class COMAConfig:
-    """Hyper-parameters of COMA (SMAC paper / PyMARL values, as the seed used; Adam as CAC).
+    """Hyper-parameters of COMA (SMAC paper / PyMARL values, as the dissertation used; Adam as CAC).
 
     Attributes:
         gamma: discount.

@@ -28,7 +28,7 @@ class AgentConfig:
     Attributes:
         hidden: GRU hidden size (width of the first layer when not recurrent).
         fc: width of the two fully connected layers after it.
-        recurrent: a GRU first layer (DRQN, the seed's) or a feed-forward one (PyMARL-family
+        recurrent: a GRU first layer (DRQN, the dissertation's) or a feed-forward one (PyMARL-family
             codebases' `use_rnn: False`; every step of a batch in one call, so much cheaper).
     """
 

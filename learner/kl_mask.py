@@ -6,12 +6,12 @@ KL divergence KL(π_θ || π_θ̃) is taken; where it exceeds the threshold K th
 advantage is set to zero, so data on which the current policy has already moved far from the
 average policy no longer pushes it further (seed: A_t = G_t - V_t where KL(θ^π || θ̃^π) < K).
 
-Direction: KL(current || target) = Σ_u π(u) [log π(u) - log π̃(u)], the seed's notation. The
+Direction: KL(current || target) = Σ_u π(u) [log π(u) - log π̃(u)], the dissertation's notation. The
 expectation is under the policy being trained, so it grows when the current policy puts its
 mass on actions the average policy considers unlikely (the "moved too far" case) and it stays
 finite because a softmax target has full support on the available actions.
 
-Rate and threshold (the seed gives neither): τ = 0.05 and K = 0.05 by default. The target's
+Rate and threshold (the dissertation gives neither): τ = 0.05 and K = 0.05 by default. The target's
 mean age is (1 - τ) / τ ≈ 19 updates, two to three lifetimes of an episode in the cycling buffer
 (32 episodes, 4 new per step: 8 updates), so π̃ averages the policies that produced the data
 being reused plus a little history, and KL(π || π̃) measures drift on the timescale of reuse.

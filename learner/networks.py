@@ -124,7 +124,7 @@ class EnsembleGRUCell(nn.Module):
 
 
 class AgentNet(nn.Module):
-    """The shared agent: GRU(hidden) -> FC(fc) -> FC(fc) -> n_actions (DRQN, the seed's), or
+    """The shared agent: GRU(hidden) -> FC(fc) -> FC(fc) -> n_actions (DRQN, the dissertation's), or
     with `recurrent=False` FC(hidden) -> FC(fc) -> FC(fc) -> n_actions (feed-forward; the
     hidden state passes through unchanged, so callers treat both alike).
 
@@ -218,7 +218,7 @@ class MLP(nn.Module):
 class QMixer(nn.Module):
     """QMIX's monotonic mixer: hypernetworks map a conditioning vector to non-negative weights.
 
-    Conditioned on the global state (QMIX) or on the joint observation (the seed's QMIX
+    Conditioned on the global state (QMIX) or on the joint observation (the dissertation's QMIX
     without state). Shapes: qs [E, M, N], cond [E, M, cond_dim] -> q_tot [E, M, 1].
     """
 

@@ -3,10 +3,11 @@
 Decentralised GRU softmax actors (the shared AgentNet, logits masked by the available actions)
 are trained by the policy gradient -log π(u_t^i | τ_t^i) A_t - β H(π(· | τ_t^i)) with one
 central critic V(x_t), an MLP 64-64-1 over the joint observation x_t = (o_t^1, ..., o_t^N)
-(the seed's critic never sees the state; `critic_input` can add it for comparison). The critic
-regresses onto TD(λ) returns G_t built from a target critic copied every
+(the dissertation's critic never sees the state; `critic_input` can add it for comparison).
+The critic regresses onto TD(λ) returns G_t built from a target critic copied every
 `target_update_interval` updates; the advantage is A_t = G_t - V(x_t), shared by every agent,
-divided by its standard deviation in the batch (`advantage_norm`, the default; not in the seed).
+divided by its standard deviation in the batch (`advantage_norm`, the default; not in the
+dissertation).
 
     cac    fresh episodes only (the trainer's data plan hands over the newest run.num_envs)
     ecac   + the semi-online cycling buffer (main batch = the last 32 episodes, each used
@@ -153,7 +154,7 @@ class CACConfig:
         entropy_coef: β, weight of the policy-entropy bonus.
         target_update_interval: updates between hard copies into the target critic.
         critic_hidden: hidden widths of the central critic MLP.
-        critic_input: what the critic sees: "obs" (joint observation, the seed's choice),
+        critic_input: what the critic sees: "obs" (joint observation, the dissertation's choice),
             "state" or "obs_state" (both, concatenated).
         kl_threshold: K; masked variants zero the advantage where KL(π || π̃) > K.
         polyak_tau: τ of the target policy π̃ <- (1 - τ) π̃ + τ π after every update.

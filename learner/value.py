@@ -5,7 +5,7 @@ how the chosen agents' Q-values become the quantity regressed onto the TD target
     iql     every agent on its own: Q_i -> r + γ max Q_i'
     vdn     Q_tot = Σ_i Q_i
     qmix    Q_tot = mixer(Q, state)           (hypernetworks conditioned on the state)
-    qmix_ns Q_tot = mixer(Q, joint obs)       (the seed's "Qmix_NS": no state, same mixer)
+    qmix_ns Q_tot = mixer(Q, joint obs)       (the dissertation's "Qmix_NS": no state, same mixer)
 """
 
 from __future__ import annotations

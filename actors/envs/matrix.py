@@ -1,4 +1,4 @@
-"""Two-step cooperative matrix games (QMIX paper's two-step game and the seed's four-game).
+"""Two-step cooperative matrix games (QMIX paper's two-step game and the dissertation's four-game).
 
 Both have two agents with two actions. Step 1 pays 0 and the agents' actions pick a payoff
 matrix; step 2 pays that matrix's entry [action of agent 0, action of agent 1] and ends the

@@ -1,7 +1,8 @@
-"""`credit repro matrix`: the seed's matrix-game experiment (Fig. 5.3) for every algorithm;
-`credit repro emcac`: the seed's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13);
+"""`credit repro matrix`: the dissertation's matrix-game experiment (Fig. 5.3) for every algorithm;
+`credit repro emcac`: the dissertation's EM-CAC ablation (Table 5.2, Figs. 5.10-5.13);
 `credit repro smac`: the value family and RDN on SMAC-like maps (results/smac/);
-`credit repro redundancy`: the seed's redundant-agents experiment (Table 5.1, Figs. 5.6-5.9)."""
+`credit repro redundancy`: the dissertation's redundant-agents experiment (Table 5.1,
+Figs. 5.6-5.9)."""
 
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(
         sub,
         "repro",
-        "Reproduce the seed's experiments, in local processes or as Ray tasks on a cluster "
+        "Reproduce the dissertation's experiments, in local processes or as Ray tasks on a cluster "
         "(--address); each writes summary.json, its curves and PNG plots under --out.",
     )
     rsub = p.add_subparsers(dest="repro_command", required=True, metavar="EXPERIMENT")

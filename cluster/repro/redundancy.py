@@ -1,5 +1,5 @@
-"""The seed's redundancy experiment (Section 5.4.2, Table 5.1, Figs. 5.6-5.9): RDN, VDN, QMIX,
-QMIX-nostate and IQL on bane_vs_bane and its variants with fewer (or more) allied zerglings,
+"""The dissertation's redundancy experiment (Section 5.4.2, Table 5.1, Figs. 5.6-5.9): RDN, VDN,
+QMIX, QMIX-nostate and IQL on bane_vs_bane and its variants with fewer (or more) allied zerglings,
 the enemy always 20 zerglings and 4 banelings.
 
 Runs, logs and the per-map plots are `cluster.repro.curves`' (`credit repro redundancy`); this
@@ -13,12 +13,12 @@ whose units are drawn every episode has no such number and stays off that chart)
   band, one line per algorithm;
 * redundancy_variance.png (Fig. 5.7): the variance of the win rate across seeds;
 * redundancy_p75.png, redundancy_p25.png (Figs. 5.8, 5.9): the 75th and 25th percentiles;
-* redundancy_final.png (not in the seed): the final win rate (each seed's mean over its last
+* redundancy_final.png (not in the dissertation): the final win rate (each seed's mean over its last
   10 evaluations; median and 25-75% over seeds) against the number of allied zerglings, a
   line through the Table 5.1 maps, open squares for the generated ones and open diamonds
   for map files; beside it the final return the same way.
 
-Maps are ordered from the most redundant zerglings to the fewest, as in the seed's figures.
+Maps are ordered from the most redundant zerglings to the fewest, as in the dissertation's figures.
 `summary.json` gets a "redundancy" entry with every number these figures draw.
 """
 

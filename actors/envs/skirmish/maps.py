@@ -1,5 +1,5 @@
 """The map catalogue: the built-in maps (`data/maps.yaml`), the generated bane variants
-`bane_z<N>` of the seed's redundancy experiment, and custom map files; each parsed into a
+`bane_z<N>` of the dissertation's redundancy experiment, and custom map files; each parsed into a
 `spec.MapSpec`."""
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def builtin_map(name: str) -> MapSpec:
 
 
 def bane_variant(zerglings: int) -> MapSpec:
-    """bane_vs_bane with `zerglings` allied zerglings (the seed's redundancy variants, any
+    """bane_vs_bane with `zerglings` allied zerglings (the dissertation's redundancy variants, any
     number, built without a file): the enemy keeps 20 zerglings and 4 banelings, the agents
     keep their 4 banelings at bane_vs_bane's baneling point, and the zerglings stand in
     bane_vs_bane's lines abreast (columns of 8) in front of them. Past three columns (24
