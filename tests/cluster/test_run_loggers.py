@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from cluster.cli import main
+from cluster.metrics import run_loggers
 
 TRAIN = ["train", "--algo", "qmix", "--env", "matrix/two_step", "--t-max", "120"]
 TRAIN += ["--set", "run.test_interval=40", "--set", "replay.batch_size=8"]
@@ -87,11 +88,9 @@ def test_wandb_offline_run(tmp_path, monkeypatch):
     assert wandb.run is None  # finished
 
 
-def test_missing_package_is_named(tmp_path, capsys):
-    import importlib.util
-
-    if importlib.util.find_spec("wandb") is not None:
-        pytest.skip("wandb is installed: nothing missing to name")
+def test_missing_package_is_named(tmp_path, capsys, monkeypatch):
+    # wandb is installed with the dev extra, so the logger is pointed at a package that is not
+    monkeypatch.setitem(run_loggers._PACKAGES, "wandb", "credit_test_no_such_package")
     argv = [*TRAIN, "--out", str(tmp_path / "run"), "--set", "run.loggers=[jsonl,wandb]"]
     assert main(argv) == 2
     assert "pip install 'credit[wandb]'" in capsys.readouterr().err
