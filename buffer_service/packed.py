@@ -285,18 +285,33 @@ class PackedEpisode:
         sc.check("state")
         if self.data.dtype != np.uint8 or self.data.ndim != 1:
             raise EpisodeError("packed episode: data must be a flat uint8 array")
-        if self.data.size != self.expected_bytes():
-            raise EpisodeError(
-                f"packed episode: data holds {self.data.size} bytes, its counts need "
-                f"{self.expected_bytes()}"
-            )
         lay = self.layout
-        for prefix, c in (("obs", oc), ("state", sc)):
-            for name, bits in zip(("live", "nonzero", "ones"), self._bit_counts(c), strict=True):
-                sec = self._view(f"{prefix}_{name}", layout=lay)
-                got = int(np.unpackbits(sec).sum())
-                if got != bits[0] or int(np.unpackbits(sec, count=bits[1]).sum()) != got:
-                    raise EpisodeError(f"packed {prefix}: {name} bits disagree with its counts")
+        need = sum(size for _, size in lay.values())
+        if self.data.size != need:
+            raise EpisodeError(
+                f"packed episode: data holds {self.data.size} bytes, its counts need {need}"
+            )
+        # the six bit sections are contiguous: one popcount pass, summed per section
+        names = [f"{p}_{k}" for p in ("obs", "state") for k in ("live", "nonzero", "ones")]
+        expect = self._bit_counts(oc) + self._bit_counts(sc)
+        start = lay[names[0]][0]
+        region = self.data[start : sum(lay[names[-1]])]
+        filled = [i for i, name in enumerate(names) if lay[name][1]]
+        sums = [0] * len(names)
+        if filled:
+            got = np.add.reduceat(
+                np.bitwise_count(region), [lay[names[i]][0] - start for i in filled], dtype=np.int64
+            )
+            for i, total in zip(filled, got.tolist(), strict=True):
+                sums[i] = total
+        for name, total, (set_bits, used) in zip(names, sums, expect, strict=True):
+            off, size = lay[name]
+            pad = -used % 8  # padding: the lowest bits of the last byte (big-endian order)
+            if total != set_bits or (
+                pad and size and int(self.data[off + size - 1]) & ((1 << pad) - 1)
+            ):
+                prefix, part = name.split("_")
+                raise EpisodeError(f"packed {prefix}: {part} bits disagree with its counts")
 
     @staticmethod
     def _bit_counts(c: FloatCounts) -> list[tuple[int, int]]:
@@ -309,8 +324,13 @@ class PackedEpisode:
 
     def validate(self, schema: EpisodeSchema) -> None:
         """Raise EpisodeError naming the first thing that breaks `schema` (the layout, then
-        every check of `Episode.validate` on the decoded arrays)."""
+        every check of `Episode.validate`, made on the packed sections)."""
         self.check_layout()
+        self.validate_contents(schema)
+
+    def validate_contents(self, schema: EpisodeSchema) -> None:
+        """`validate` without the layout check, for an episode whose layout is checked
+        already (`codec.episode_from_wire` checks every episode it decodes)."""
         n, o, s, a = self.dims
         want = (schema.n_agents, schema.obs_dim, schema.n_actions)
         if (n, o, a) != want or s not in (0, schema.state_dim):
@@ -319,7 +339,32 @@ class PackedEpisode:
                 f"schema {(schema.n_agents, schema.obs_dim, schema.state_dim, schema.n_actions)}"
                 " (state 0 allowed)"
             )
-        self.unpack().validate(schema, state=self.has_state)
+        self._validate_values(schema)
+
+    def _validate_values(self, schema: EpisodeSchema) -> None:
+        """`Episode.validate`'s checks of the values, made on the packed sections (the same
+        errors, in the same order; zeros and the 1.0 entries are finite, avail_actions is
+        bit-packed so only 0 and 1, filled and terminated cannot be wrong)."""
+        t, (n, _, _, a), lay = self.length, self.dims, self.layout
+        if not 1 <= t <= schema.max_t:
+            raise EpisodeError(f"episode length {t} outside 1..{schema.max_t}")
+        for name, section in (
+            ("obs", "obs_values"),
+            ("state", "state_values"),
+            ("reward", "reward"),
+        ):
+            if not np.all(np.isfinite(self._view(section, np.float32, lay))):
+                raise EpisodeError(f"field {name!r} holds NaN or inf")
+        actions = self._view("actions", self.action_dtype, lay)
+        if actions.size and (int(actions.min()) < 0 or int(actions.max()) >= schema.n_actions):
+            raise EpisodeError(f"field 'actions' has values outside 0..{schema.n_actions - 1}")
+        avail = np.unpackbits(self._view("avail", layout=lay), count=(t + 1) * n * a)
+        stuck = ~avail.reshape(t + 1, n, a).any(axis=-1)  # [T+1, N]: no action available
+        if np.any(stuck):
+            t_, agent = (int(i) for i in np.argwhere(stuck)[0])
+            raise EpisodeError(
+                f"field 'avail_actions': agent {agent} has no available action at step {t_}"
+            )
 
     # -- decoding -------------------------------------------------------------------------
     def write_into(self, out: dict[str, np.ndarray], i: int) -> None:

@@ -106,8 +106,8 @@ def insert_episodes(msg: dict[str, Any], schema_: EpisodeSchema, frame_bytes: in
     eps = []
     for i, wire in enumerate(wires):
         try:
-            ep = codec.episode_from_wire(wire)
-            ep.validate(schema_)
+            ep = codec.episode_from_wire(wire)  # checks the packed layout
+            ep.validate_contents(schema_)
         except (CodecError, EpisodeError) as e:
             raise RequestError("invalid_episode", f"episode {i}: {e}") from None
         eps.append(codec.own(ep) if codec.decodes_as_views(frame_bytes) else ep)

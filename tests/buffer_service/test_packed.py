@@ -101,6 +101,54 @@ def test_what_cannot_be_packed_or_does_not_fit_the_schema_is_refused():
         PackedEpisode.pack(ep).validate(other)
 
 
+def _corrupt(p: PackedEpisode, section: str, value, dtype=np.uint8) -> PackedEpisode:
+    """`p` with the first element of one section of its buffer set to `value` (as a
+    hostile client could send it: the packed form, not an Episode)."""
+    data = p.data.copy()
+    off, _ = p.layout[section]
+    data[off : off + np.dtype(dtype).itemsize].view(dtype)[0] = value
+    return dataclasses.replace(p, data=data)
+
+
+@pytest.mark.parametrize(
+    "section,value,dtype,match",
+    [
+        ("obs_values", np.inf, np.float32, "'obs' holds NaN or inf"),
+        ("state_values", np.nan, np.float32, "'state' holds NaN or inf"),
+        ("reward", -np.inf, np.float32, "'reward' holds NaN or inf"),
+        ("actions", 9, np.uint8, "'actions' has values outside 0..8"),
+        ("avail", 0, np.uint16, "agent 0 has no available action at step 0"),
+    ],
+)
+def test_packed_checks_refuse_what_the_dense_checks_refuse(section, value, dtype, match):
+    """The server validates inserts on the packed form without decoding them: each bad
+    value gets the same error as the decoded episode gets from `Episode.validate`."""
+    bad = _corrupt(PackedEpisode.pack(smac_like(3, 20)), section, value, dtype)
+    for check in (lambda: bad.validate(BIG), lambda: bad.unpack().validate(BIG)):
+        with pytest.raises(EpisodeError, match=match):
+            check()
+
+
+def test_packed_length_and_layout_bits_are_checked():
+    p = PackedEpisode.pack(smac_like(4, 60))
+    with pytest.raises(EpisodeError, match=r"length 60 outside 1\.\.59"):
+        p.validate(dataclasses.replace(BIG, max_t=59))
+    # a set bit in the padding after a section's last used bit (nothing decodes it, but a
+    # stored episode has exactly one packed form)
+    c = p.obs_counts
+    assert c.nonzero % 8, "the test needs a section with padding bits"
+    off, size = p.layout["obs_ones"]
+    data = p.data.copy()
+    data[off + size - 1] |= 1
+    with pytest.raises(EpisodeError, match="obs: ones bits disagree"):
+        dataclasses.replace(p, data=data).check_layout()
+    data = p.data.copy()
+    off, _ = p.layout["obs_live"]
+    data[off] ^= 0x80  # one more (or one fewer) live row than counted
+    with pytest.raises(EpisodeError, match="obs: live bits disagree"):
+        dataclasses.replace(p, data=data).check_layout()
+
+
 def test_large_episodes_are_stored_outside_the_heap_and_copied_out_of_frames():
     wide = EpisodeSchema(n_agents=24, obs_dim=80, state_dim=30, n_actions=9, max_t=60)
     ep = PackedEpisode.pack(smac_like(1, 60, wide))
