@@ -33,6 +33,7 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from buffer_service import codec
@@ -104,7 +105,7 @@ class BufferClient:
         self.max_retries = max_retries
         self.backoff_s, self.max_backoff_s = backoff_s, max_backoff_s
         self.max_frame_bytes = max_frame_bytes
-        self.server_max_frame = 64 * 2**20
+        self.server_max_frame = 64 * 2**20  # until the server's hello says
         self.tables: list[str] = []
         self.reconnects = 0
         self.client_id = client_id or f"{socket.gethostname()}:{os.getpid()}"
@@ -138,6 +139,8 @@ class BufferClient:
             episodes that the lost attempt had stored count as duplicates.
         """
         total = {"inserted": 0, "duplicates": 0}
+        if not self.reconnects:
+            self._connected()  # the hello tells the server's frame limit the chunks must fit
         for chunk in self._chunks([PackedEpisode.pack(ep, state) for ep in episodes]):
             msg: dict[str, Any] = {"op": "insert", "episodes": chunk}
             if tables is not None:
@@ -217,6 +220,14 @@ class BufferClient:
 
     def _request(self, msg: dict[str, Any], extra_timeout: float | None = None) -> dict[str, Any]:
         body = codec.pack_parts({**msg, "v": PROTOCOL_VERSION})
+        wait = extra_timeout if extra_timeout is not None else 0.0
+        if msg["op"] in ("sample", "insert") and extra_timeout is None:
+            wait = 3600.0  # server-side rate-limiter wait is bounded by the server
+        return self._connected(lambda: self._exchange(body, self.request_timeout_s + wait))
+
+    def _connected(self, action: Callable[[], Any] = lambda: None) -> Any:
+        """`action()` on a live, greeted connection (reconnecting first when there is none
+        or it went stale), retried on transport errors with backoff."""
         delay = self.backoff_s
         with self._lock:
             for attempt in range(self.max_retries + 1):
@@ -225,10 +236,7 @@ class BufferClient:
                         self._drop()  # closed or about to be closed for idling: reconnect
                     if self._sock is None:
                         self._connect()
-                    wait = extra_timeout if extra_timeout is not None else 0.0
-                    if msg["op"] in ("sample", "insert") and extra_timeout is None:
-                        wait = 3600.0  # server-side rate-limiter wait is bounded by the server
-                    return self._exchange(body, self.request_timeout_s + wait)
+                    return action()
                 except (_TransportError, OSError) as e:
                     self._drop()
                     if attempt == self.max_retries:

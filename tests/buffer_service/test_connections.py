@@ -133,3 +133,16 @@ def test_limits_are_checked_against_max_frame_bytes(field):
     bad = {"max_hello_bytes": 2 << 20, "max_inflight_bytes": (1 << 20) - 1}[field]
     with pytest.raises(ValueError, match=field):
         BufferConfig(max_frame_bytes=1 << 20, **{field: bad}).validate()
+
+
+def test_a_new_clients_first_insert_is_split_by_the_servers_frame_limit(serve):
+    """A client that has not connected yet still sizes its first insert's frames by the
+    server's max_frame_bytes (learnt from the hello), not by its own default of 64 MiB."""
+    srv, c = serve(max_frame_bytes=1 << 20)
+    eps = [make_episode(0, i) for i in range(2500)]  # about 1.5 MB packed in all
+    fresh = BufferClient("127.0.0.1", srv.port, max_retries=0)
+    try:
+        assert fresh.insert(eps) == {"inserted": 2500, "duplicates": 0}
+    finally:
+        fresh.close()
+    assert c.stats()["tables"]["replay"]["size"] == 2500
