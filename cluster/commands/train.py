@@ -17,7 +17,8 @@ import yaml
 from actors.envs.registry import env_name, is_map_file
 from cluster.commands import add_command
 from cluster.config.schema import ConfigError
-from cluster.config.train import TrainConfig, default_files, load_train_config, recipe_file
+from cluster.config.shipped import default_files, recipe_file
+from cluster.config.train import TrainConfig, load_train_config
 from cluster.core import EvalRecord, write_json
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer

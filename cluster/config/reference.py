@@ -22,7 +22,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from cluster.config.train import SECTIONS, SHIPPED_RECIPE
+from cluster.config.shipped import SHIPPED_RECIPE
+from cluster.config.train import SECTIONS
 from learner.registry import ALGOS
 
 HEADER = """\

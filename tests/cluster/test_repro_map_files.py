@@ -10,7 +10,8 @@ import pytest
 
 from actors.envs.registry import env_info, make_vec_env
 from cluster.cli import main
-from cluster.config.train import default_files, load_train_config
+from cluster.config.shipped import default_files
+from cluster.config.train import load_train_config
 from cluster.repro.curves import Curve
 from cluster.repro.redundancy import ordered, write_figures, zerglings_of
 

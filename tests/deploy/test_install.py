@@ -22,7 +22,8 @@ import pytest
 import yaml
 
 from cluster.config.schema import ConfigError
-from cluster.config.train import config_root, default_files, load_train_config
+from cluster.config.shipped import config_root, default_files
+from cluster.config.train import load_train_config
 from learner.registry import ALGOS
 
 ROOT = Path(__file__).resolve().parents[2]
