@@ -14,8 +14,16 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from actors.envs.registry import env_name, is_map_file
+from actors.envs.registry import env_name
 from cluster.commands import add_command
+from cluster.commands.repro_options import (
+    add_run_options,
+    check_algos,
+    check_env_names,
+    custom_as_file,
+    fan_out_config,
+    resume_config,
+)
 from cluster.config.train import load_train_config
 from cluster.core import write_json
 from cluster.errors import UsageError
@@ -25,12 +33,8 @@ from cluster.repro import emcac as repro_emcac
 from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
 from cluster.repro import report as repro_report
-from cluster.repro import resume as repro_resume
 from cluster.repro import smac as repro_smac
-from cluster.repro.aggregate import REPS, curve_scores, matrix_scores, max_return
-from cluster.repro.fanout import FanOutConfig
-from cluster.repro.resume import ResumeConfig
-from learner.registry import ALGOS
+from cluster.repro.aggregate import curve_scores, matrix_scores, max_return
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="env steps per run (default: cluster/config/layers/envs/matrix.yaml)",
     )
-    _add_run_options(m)
+    add_run_options(m)
     m.add_argument(
         "--summarise-only",
         action="store_true",
@@ -73,95 +77,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     m.set_defaults(func=cmd_matrix)
     register_emcac(rsub)
-
-
-def _add_run_options(m: argparse.ArgumentParser) -> None:
-    """Where the (algorithm, env) pairs run, and --set; shared by every experiment."""
-    m.add_argument(
-        "--workers",
-        type=int,
-        default=2,
-        help="local processes running pairs in parallel (without --address)",
-    )
-    m.add_argument(
-        "--address",
-        default=None,
-        metavar="auto|HOST:PORT",
-        help="run each (algorithm, env) pair as a Ray task on this cluster: 'auto' = the one "
-        "`credit cluster up` started (else Ray's discovery, e.g. RAY_ADDRESS), or a head's "
-        "HOST:PORT; results still land in --out (default: local processes)",
-    )
-    m.add_argument(
-        "--cpus-per-pair",
-        type=float,
-        default=1.0,
-        help="with --address: CPUs each pair's task asks for (default 1; a pair uses "
-        "run.torch_threads threads, 1 unless set)",
-    )
-    m.add_argument(
-        "--max-retries",
-        type=int,
-        default=3,
-        help="with --address: restarts of a pair whose worker process or node dies (default 3)",
-    )
-    m.add_argument(
-        "--no-ship-code",
-        dest="ship_code",
-        action="store_false",
-        help="with --address: run the credit installed on the nodes instead of uploading this "
-        "checkout's packages to them",
-    )
-    m.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override for every run",
-    )
-    m.add_argument(
-        "--bootstrap-reps",
-        type=int,
-        default=REPS,
-        help=f"bootstrap draws of each aggregate interval in summary.json (default {REPS})",
-    )
-    m.add_argument(
-        "--checkpoint-every",
-        type=int,
-        default=repro_resume.CHECKPOINT_EVERY,
-        metavar="STEPS",
-        help="each pair checkpoints its whole state (networks, optimisers, replay, random "
-        "states, evaluation log) to OUT/resume/<env>__<algo>/ every STEPS env steps "
-        f"(default {repro_resume.CHECKPOINT_EVERY:,}; 0: never); running the same command "
-        "again continues unfinished pairs from there and skips finished ones",
-    )
-
-
-def fan_out_config(args: argparse.Namespace) -> FanOutConfig:
-    """The run options of a repro command as a checked FanOutConfig (UsageError if bad)."""
-    if args.bootstrap_reps < 1:
-        raise UsageError(f"--bootstrap-reps must be >= 1, got {args.bootstrap_reps}")
-    cfg = FanOutConfig(
-        workers=args.workers,
-        address=args.address or None,
-        cpus_per_pair=args.cpus_per_pair,
-        max_retries=args.max_retries,
-        ship_code=args.ship_code,
-    )
-    try:
-        cfg.validate()
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    return cfg
-
-
-def resume_config(args: argparse.Namespace, out: Path, overrides: list[str]) -> ResumeConfig:
-    """Where the pairs checkpoint and record themselves (UsageError for a bad interval)."""
-    if args.checkpoint_every < 0:
-        raise UsageError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
-    commit = repro_resume.code_commit()
-    log.info("code at commit %s", commit)
-    settings = {"seeds": args.seeds, "overrides": list(overrides)}
-    return ResumeConfig(str(out.resolve()), args.checkpoint_every, commit, settings)
 
 
 def _run(run: Callable[[], list]) -> list:
@@ -250,7 +165,7 @@ def _register_curves(
         help="env steps between evaluations (default: the env's YAML)",
     )
     m.add_argument("--out", required=True, help="output folder")
-    _add_run_options(m)
+    add_run_options(m)
     m.add_argument(
         "--summarise-only",
         action="store_true",
@@ -266,45 +181,6 @@ def _register_curves(
     return m
 
 
-def _check_algos(algos: list[str]) -> None:
-    for a in algos:
-        if a not in ALGOS:
-            raise UsageError(
-                f"unknown algorithm {a!r}; valid algorithms: {', '.join(sorted(ALGOS))}"
-            )
-
-
-def _custom_as_file(envs: list[str], sets: list[str]) -> tuple[list[str], list[str]]:
-    """`skirmish/custom` with `--set env.args.map_file=PATH` is the map file PATH given as an
-    env, so that it is named, logged and charted as one (and the override does not reach the
-    other envs). Returns the envs and the remaining overrides."""
-    key = "env.args.map_file="
-    files = [s.removeprefix(key) for s in sets if s.startswith(key)]
-    if not files or "skirmish/custom" not in envs:
-        return envs, sets
-    rest = [s for s in sets if not s.startswith(key)]
-    return [files[-1] if g == "skirmish/custom" else g for g in envs], rest
-
-
-def _check_env_names(envs: list[str], fan: FanOutConfig) -> None:
-    """Each env must name its own plot (a map file by its stem), and on a cluster a map file
-    must be given by its absolute path: the pairs run in other working directories."""
-    seen: dict[str, str] = {}
-    for g in envs:
-        if env_name(g) in seen and seen[env_name(g)] != g:
-            raise UsageError(
-                f"--envs: {seen[env_name(g)]!r} and {g!r} would share the plot name "
-                f"{env_name(g)!r}; rename one map file"
-            )
-        seen[env_name(g)] = g
-        if fan.address and is_map_file(g) and not Path(g).is_absolute():
-            raise UsageError(
-                f"--envs {g!r}: with --address give a map file by its absolute path (the "
-                "pairs run in other working directories; on other nodes the file must be at "
-                "that path too)"
-            )
-
-
 def cmd_curves(
     args: argparse.Namespace,
     name: str,
@@ -317,14 +193,14 @@ def cmd_curves(
     (which may add to the summary)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
-    envs, sets = _custom_as_file(envs, list(args.set))
-    _check_algos(algos)
+    envs, sets = custom_as_file(envs, list(args.set))
+    check_algos(algos)
     if not algos or not envs:
         raise UsageError("--algos and --envs must name at least one algorithm and env")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
-    _check_env_names(envs, fan)
+    check_env_names(envs, fan)
     overrides = sets + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
@@ -377,7 +253,7 @@ def cmd_curves(
 def cmd_matrix(args: argparse.Namespace) -> int:
     algos = [a for a in args.algos.split(",") if a]
     games = [g for g in args.games.split(",") if g]
-    _check_algos(algos)
+    check_algos(algos)
     for g in games:
         if not g.startswith("matrix/"):
             raise UsageError(

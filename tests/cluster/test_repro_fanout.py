@@ -10,7 +10,7 @@ import socket
 import pytest
 
 from cluster.cli import build_parser, main
-from cluster.commands.repro import fan_out_config
+from cluster.commands.repro_options import fan_out_config
 from cluster.repro.fanout import (
     Collector,
     FanOutConfig,
