@@ -43,7 +43,8 @@ exit code 2.
 The top-level key `recipe` (default `{shipped}`) puts one more layer,
 `recipes/<algo>.<recipe>.yaml`, on top of the shipped ones and under your own overrides:
 `recipe=dissertation` gives RDN exactly as the dissertation describes it (`recipe=seed` is an
-older name for it and still works).
+older name for it and still works); `recipe=gru_one_step` gives QMIX and QMIX-nostate the
+agent network and one-step targets VDN uses (Table 5.1's like-for-like check).
 """
 
 

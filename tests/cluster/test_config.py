@@ -153,6 +153,21 @@ def test_an_unknown_recipe_names_the_valid_ones():
         build_train_config({**saved, "recipe": "paper"})
 
 
+@pytest.mark.parametrize("algo", ["qmix", "qmix_ns"])
+@pytest.mark.parametrize("env", ["skirmish/bane_vs_bane", "skirmish/bane_no_z"])
+def test_recipe_gru_one_step_gives_qmix_vdns_agent_and_targets(algo, env):
+    """Table 5.1's like-for-like check: with the recipe, QMIX's agent network and targets
+    are VDN's, so only the mixer (and, for QMIX, the state) differs."""
+    shipped = load_train_config(algo, env)
+    like = load_train_config(algo, env, [], ["recipe=gru_one_step"])
+    vdn = load_train_config("vdn", env)
+    assert shipped.algo.agent != vdn.algo.agent or shipped.algo.td_lambda != vdn.algo.td_lambda
+    assert like.algo.agent == vdn.algo.agent and like.algo.td_lambda == vdn.algo.td_lambda == 0
+    for key in ("gamma", "lr", "target_update_episodes", "double_q"):
+        assert getattr(like.algo, key) == getattr(vdn.algo, key), key
+    assert (like.replay, like.run, like.exploration) == (vdn.replay, vdn.run, vdn.exploration)
+
+
 @pytest.mark.parametrize(
     "algo, env, upe",
     [
