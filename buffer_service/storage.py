@@ -62,13 +62,13 @@ import re
 import threading
 from typing import Any
 
-from buffer_service import commit, records
+from buffer_service import commit, records, snapshots
 from buffer_service.config import TableConfig
 from buffer_service.episode import EpisodeSchema
 from buffer_service.records import FILE, INSERT, SAMPLE, SCHEMA
 from buffer_service.restore import TEMP, RestoreMixin, StorageError
-from buffer_service.snapshots import FILE_MODE, SnapshotJob
-from buffer_service.state import BufferState
+from buffer_service.snapshots import FILE_MODE
+from buffer_service.state import BufferState, StateCopy
 
 __all__ = ["NAME", "TEMP", "Storage", "StorageError", "WriteError"]
 
@@ -309,6 +309,19 @@ class Storage(RestoreMixin):
         """Write generation g+1 from `state` now (blocking)."""
         return self.begin_snapshot(state).write()
 
+    def _finish_snapshot(self, gen: int, copy: StateCopy) -> str:
+        """Write snapshot `gen` from `copy`, make it the base and drop what it replaces."""
+        final = self.path("snapshot", gen)
+        snapshots.write_file(final, self._file_meta("snapshot", gen, copy.schema), copy)
+        self._fsync_dir()
+        previous, self.base = self.base, gen
+        self._retain({gen, previous}, previous)  # the previous one stays as a fallback
+        if self.commit.fd is not None:
+            self.sync_retired()
+            self.write_marks(sync=True)  # without the marks of the logs just removed
+        log.info("snapshot %s: %d episodes", final, len(copy.episodes))
+        return final
+
     def close(self) -> None:
         with self._fd_lock:
             for fd in [*self._retired, self.fd]:
@@ -322,3 +335,16 @@ class Storage(RestoreMixin):
             if not self.failed:
                 self.write_marks(sync=True)
             self.commit.close()
+
+
+@dataclasses.dataclass(frozen=True)
+class SnapshotJob:
+    """Writes one snapshot from a `StateCopy` (`write`, in any thread); made by
+    `Storage.begin_snapshot`."""
+
+    storage: Storage
+    gen: int
+    copy: StateCopy
+
+    def write(self) -> str:
+        return self.storage._finish_snapshot(self.gen, self.copy)

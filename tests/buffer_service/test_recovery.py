@@ -17,9 +17,8 @@ from buffer_service import codec, records
 from buffer_service.client import BufferClient
 from buffer_service.config import BufferConfig
 from buffer_service.runner import start_server_thread
-from buffer_service.snapshots import SnapshotJob
 from buffer_service.state import BufferState
-from buffer_service.storage import NAME, Storage, StorageError
+from buffer_service.storage import NAME, SnapshotJob, Storage, StorageError
 from buffer_service.verify import verify
 from tests.buffer_service.conftest import SCHEMA, make_episode, table
 
