@@ -12,7 +12,7 @@ from actors.envs.registry import env_name, is_map_file
 from cluster.errors import UsageError
 from cluster.repro import resume as repro_resume
 from cluster.repro.aggregate import REPS
-from cluster.repro.fanout import FanOutConfig
+from cluster.repro.pairs import FanOutConfig
 from cluster.repro.resume import ResumeConfig
 from learner.registry import ALGOS
 

@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+from cluster.repro.fanout import run_pairs
+from cluster.repro.pairs import FanOutConfig, Pair, StatusLine
 from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
 
 log = logging.getLogger(__name__)

@@ -20,7 +20,7 @@ from typing import Any
 
 from cluster.launch import ray_cluster
 from cluster.launch.ray_cluster import ClusterError
-from cluster.repro.fanout import POLL_S, Collector, FanOutConfig, Pair, PairEvent, PairFn, run_pair
+from cluster.repro.pairs import POLL_S, Collector, FanOutConfig, Pair, PairEvent, PairFn, run_pair
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from actors.envs.registry import make_env
-from cluster.repro.fanout import FanOutConfig, Pair, StatusLine, run_pairs
+from cluster.repro.fanout import run_pairs
+from cluster.repro.pairs import FanOutConfig, Pair, StatusLine
 from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
 
 log = logging.getLogger(__name__)

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from cluster.errors import UsageError
-from cluster.repro.fanout import Pair
+from cluster.repro.pairs import Pair
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +171,7 @@ class PairJournal:
     Args:
         resume: the run's checkpoint settings (None: no checkpoints).
         pair: the pair.
-        report: the pair's Reporter (`cluster.repro.fanout`): one JSON line per evaluation,
+        report: the pair's Reporter (`cluster.repro.pairs`): one JSON line per evaluation,
             and its `resumed` / `checkpointed` events when it has them; None for none.
     """
 

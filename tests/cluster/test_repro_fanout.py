@@ -11,14 +11,8 @@ import pytest
 
 from cluster.cli import build_parser, main
 from cluster.commands.repro_options import fan_out_config
-from cluster.repro.fanout import (
-    Collector,
-    FanOutConfig,
-    Pair,
-    PairEvent,
-    StatusLine,
-    run_pairs,
-)
+from cluster.repro.fanout import run_pairs
+from cluster.repro.pairs import Collector, FanOutConfig, Pair, PairEvent, StatusLine
 
 COMMANDS = {
     "matrix": ["repro", "matrix", "--out", "OUT"],
@@ -107,7 +101,7 @@ def test_collector_restarts_a_log_and_drops_a_lost_attempts_lines(tmp_path, capl
     c.handle(PairEvent(pair, "evaluated", first, '{"t_env": 2}'))
     c.handle(PairEvent(pair, "evaluated", first, '{"t_env": 22}\n'))
     assert _lines(log) == ['{"t_env": 2}', '{"t_env": 22}']
-    with caplog.at_level("INFO", logger="cluster.repro.fanout"):
+    with caplog.at_level("INFO", logger="cluster.repro.pairs"):
         c.handle(PairEvent(pair, "started", second))  # the retry of a lost attempt
     assert _lines(log) == []
     assert "pair vdn@matrix/two_step restarted on h (pid 12), attempt 2" in caplog.text
@@ -115,7 +109,7 @@ def test_collector_restarts_a_log_and_drops_a_lost_attempts_lines(tmp_path, capl
     c.handle(PairEvent(pair, "evaluated", second, '{"t_env": 2}'))
     c.handle(PairEvent(pair, "finished", first, wall_s=9.0))
     assert c.finished == set()
-    with caplog.at_level("INFO", logger="cluster.repro.fanout"):
+    with caplog.at_level("INFO", logger="cluster.repro.pairs"):
         c.handle(PairEvent(pair, "finished", second, wall_s=3.0))
     assert _lines(log) == ['{"t_env": 2}']
     assert c.finished == {pair}

@@ -17,7 +17,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.repro import curves
-from cluster.repro.fanout import Collector, Pair, Reporter
+from cluster.repro.pairs import Collector, Pair, Reporter
 from cluster.repro.resume import JOURNAL, RESUME_FOLDER, ResumeConfig
 from tests.cluster.polling import wait_for
 
