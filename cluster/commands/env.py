@@ -122,7 +122,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from actors.envs.skirmish.render import render_episode
+    from actors.episode_gifs import render_episode
 
     kwargs = {"map_file": args.map_file} if args.map_file else {}
     summary = render_episode(

@@ -74,7 +74,7 @@ def write_report(run_dir: Path, episodes: int = 100, gif_tries: int = 10) -> Dem
     Returns:
         The figures and the paths written (run_dir/learning_curve.png, run_dir/policy.gif).
     """
-    from actors.envs.skirmish.render import render_policy_episode
+    from actors.episode_gifs import render_policy_episode
 
     cfg = build_train_config(read_yaml(run_dir / "config.yaml"))
     core = TrainerCore(cfg, 1)

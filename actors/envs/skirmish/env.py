@@ -296,7 +296,7 @@ class SkirmishEnv:
         self.vec.set_rng_state(state)
 
     def render(self) -> None:
-        """Use `actors.envs.skirmish.render.render_episode` for GIFs."""
+        """Use `actors.episode_gifs.render_episode` for GIFs."""
 
     def close(self) -> None:
         self.vec.close()
