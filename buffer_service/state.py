@@ -131,10 +131,6 @@ class BufferState:
             "tables": {name: t.stats() for name, t in self.tables.items()},
         }
 
-    def header_state(self) -> dict[str, Any]:
-        """Everything but the episodes themselves, for a snapshot."""
-        return self.capture().header()
-
     def capture(self) -> StateCopy:
         """A copy of the references that make up the state, cheap enough to take on the event
         loop (flat C-level copies of the containers; the episodes are immutable and shared),
