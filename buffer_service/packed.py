@@ -195,9 +195,6 @@ class PackedEpisode:
             pos += size
         return out
 
-    def expected_bytes(self) -> int:
-        return sum(size for _, size in self.layout.values())
-
     def _view(self, name: str, dtype=np.uint8, layout: dict | None = None) -> np.ndarray:
         off, size = (layout or self.layout)[name]
         return self.data[off : off + size].view(dtype)

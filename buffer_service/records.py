@@ -29,7 +29,6 @@ its length, as nothing better is possible there), so that older folders can be c
 
 from __future__ import annotations
 
-import io
 import os
 import struct
 import zlib
@@ -277,11 +276,4 @@ def scan_file(path: str, keep: bool = True, visit: Callable[[Record], None] | No
                 out.records.append(rec)
             if visit is not None:
                 visit(rec)
-    return out
-
-
-def scan_bytes(data: bytes) -> Scan:
-    """`scan_file` of a file's contents."""
-    out = Scan(format=None)
-    out.records = list(iter_file(io.BytesIO(data), out))
     return out

@@ -35,10 +35,6 @@ class EnsembleLinear(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.baddbmm(self.bias, x, self.weight)
 
-    def matmul(self, x: torch.Tensor) -> torch.Tensor:
-        """x @ weight without the bias (LRP's way forward): [E, M, in] -> [E, M, out]."""
-        return torch.bmm(x, self.weight)
-
     def matmul_t(self, s: torch.Tensor) -> torch.Tensor:
         """s @ weightᵀ (LRP's way back): [E, M, out] -> [E, M, in]."""
         return torch.bmm(s, self.weight.transpose(1, 2))
@@ -80,12 +76,6 @@ class AgentBlockLinear(nn.Module):
         e, m, _ = x.shape
         xb = x.reshape(e, m * self.n_agents, self.block)
         out = torch.baddbmm(self.block_bias, xb, self.block_weight)
-        return out.view(e, m, self.out_features)
-
-    def matmul(self, x: torch.Tensor) -> torch.Tensor:
-        """x @ weight without the bias, block by block: [E, M, N*block] -> [E, M, N*H]."""
-        e, m, _ = x.shape
-        out = torch.bmm(x.reshape(e, m * self.n_agents, self.block), self.block_weight)
         return out.view(e, m, self.out_features)
 
     def matmul_t(self, s: torch.Tensor) -> torch.Tensor:

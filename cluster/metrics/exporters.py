@@ -71,13 +71,6 @@ LEARNER_METRIC_NAMES = (
 #: The learner's credit_run_info{algo, family} = 1 when the launcher names the algorithm: what
 #: the dashboard picks its panels by (no chart of its own).
 RUN_INFO_NAME = "credit_run_info"
-#: The buffer service's names (defined in `buffer_service/metrics.py`, listed for the dashboards).
-BUFFER_METRIC_NAMES = (
-    "credit_buffer_inserts_total",
-    "credit_buffer_samples_total",
-    "credit_buffer_size_episodes",
-    "credit_buffer_rejected_total",
-)
 
 
 def _counter_name(name: str) -> str:

@@ -20,7 +20,6 @@ from typing import Any
 
 from cluster.errors import UsageError
 
-LOGGERS = ("jsonl", "tensorboard", "wandb")
 _PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 
 
