@@ -1,11 +1,12 @@
 """The one training loop, for `--mode local` and `--mode cluster` alike.
 
-`TrainLoop` drives a `TrainerCore` (learner, evaluation, checkpoints) against two small
-interfaces: the acting side (`ActingSide`: an in-process `RolloutWorker`,
+`TrainLoop` drives a `TrainerCore` (learner, evaluation, checkpoints, counters) against two
+small interfaces, the acting side (`ActingSide`: an in-process `RolloutWorker`,
 `cluster.launch.local.LocalActing`, or Ray rollout actors, `cluster.launch.ray_sides.RayActing`) and
 the data side (`DataSide`: in-process buffer tables, `cluster.launch.local.LocalData`, or the
 buffer service over TCP, `cluster.launch.ray_sides.ServiceData`). `LocalTrainer` and
-`ClusterTrainer` only choose the pair.
+`ClusterTrainer` only choose the pair. The sides are given the run's frozen context
+(`cluster.context.RunContext`) and the learner (`cluster.learning.Learning`), never the core.
 
 Behaviour of the two modes (the one place it is written down)
 --------------------------------------------------------------
@@ -52,9 +53,14 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from buffer_service.episode import Episode, EpisodeBatch
+from cluster import process
+from cluster.checkpoint import checkpoint_folder
 from cluster.config.schema import ConfigError
-from cluster.core import EvalRecord, Progress, TrainerCore
+from cluster.context import RunContext
+from cluster.core import TrainerCore
+from cluster.evaluation import EvalRecord
 from cluster.metrics.loop_stats import LoopStats
+from cluster.progress import Progress
 from learner.timers import TIMERS, timed
 
 log = logging.getLogger(__name__)
@@ -72,14 +78,14 @@ class ActingSide(Protocol):
 
     Calling loop (`TrainLoop.train`)::
 
-        steps, episodes = acting.act()     # new env steps and episodes since the last call
+        steps, episodes = acting.act(t_env, episodes)  # new since the loop's totals so far
         ...learner updates...
-        acting.updated(seconds)            # after each update (publish weights, metrics)
+        acting.updated(seconds, metrics)   # after each update (publish weights, metrics)
         acting.evaluated(records)          # after each greedy evaluation
     """
 
-    def act(self) -> tuple[int, int]: ...
-    def updated(self, seconds: float) -> None: ...
+    def act(self, t_env: int, episodes: int) -> tuple[int, int]: ...
+    def updated(self, seconds: float, metrics: dict[str, float]) -> None: ...
     def evaluated(self, records: list[EvalRecord]) -> None: ...
     def state(self) -> dict[str, Any]: ...
     def load_state(self, state: dict[str, Any]) -> None: ...
@@ -105,26 +111,26 @@ class DataSide(Protocol):
     def load_state(self, state: dict[str, Any]) -> None: ...
 
 
-def check_modes(core: TrainerCore, ensemble_ok: bool) -> None:
+def check_modes(ctx: RunContext, ensemble_ok: bool) -> None:
     """Refuse what a mode cannot do, naming the key (see the module docstring).
 
     Args:
-        core: the run's core (its n_ensemble, its config).
+        ctx: the run (its n_ensemble, its config).
         ensemble_ok: whether the acting side can hold several seeds in one set of tensors.
     Raises:
         ConfigError: n_ensemble > 1 where the acting side cannot, or run.max_policy_lag
             with n_ensemble > 1.
     """
-    if core.E > 1 and not ensemble_ok:
+    n, lag = ctx.n_ensemble, ctx.run.max_policy_lag
+    if n > 1 and not ensemble_ok:
         raise ConfigError(
-            f"n_ensemble={core.E}: several seeds in one set of tensors run only in "
+            f"n_ensemble={n}: several seeds in one set of tensors run only in "
             "--mode local; in cluster mode run one seed per run (n_ensemble=1)"
         )
-    if core.E > 1 and core.cfg.run.max_policy_lag:
+    if n > 1 and lag:
         raise ConfigError(
-            f"run.max_policy_lag={core.cfg.run.max_policy_lag} needs n_ensemble=1 (got "
-            f"{core.E}): dropping stale episodes would give the members batches of "
-            "different sizes"
+            f"run.max_policy_lag={lag} needs n_ensemble=1 (got {n}): dropping stale "
+            "episodes would give the members batches of different sizes"
         )
 
 
@@ -191,7 +197,7 @@ class TrainLoop:
             progress: show a progress bar (a log line when stderr is not a terminal).
             stop: polled once per iteration.
         """
-        core, run = self.core, self.core.cfg.run
+        core, run = self.core, self.core.ctx.run
         bar = Progress(run.t_max) if progress else None
 
         def evaluated(records: list[EvalRecord]) -> None:
@@ -203,14 +209,14 @@ class TrainLoop:
             for pair in TIMERS.iterate("sample", self.data.catch_up()):
                 self._update(pair)
             with timed("act"):
-                steps, episodes = self.acting.act()
+                steps, episodes = self.acting.act(core.t_env, core.episodes)
             core.t_env += steps
             core.episodes += episodes
             for pair in TIMERS.iterate("sample", self.data.batches(episodes)):
                 self._update(pair)
             with timed("periodic"):  # evaluation, and the checkpoint ("periodic/checkpoint")
                 core.periodic(evaluated, bar, self._timed_save)
-            core.threads.tick()
+            process.tick()  # run.torch_threads "auto": the free CPUs, measured again
         if bar:
             bar.close()
 
@@ -218,12 +224,12 @@ class TrainLoop:
         batch, extra = pair
         started = time.perf_counter()
         with timed("update"):
-            self.core.update(batch, extra)
+            metrics = self.core.update(batch, extra)
         seconds = time.perf_counter() - started
         self.stats.updates += 1
         self.stats.update_s += seconds
         self.stats.consumed_env_steps += int(batch.filled.sum())
-        self.acting.updated(seconds)
+        self.acting.updated(seconds, metrics)
 
     # -- checkpoints -------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -252,4 +258,4 @@ class TrainLoop:
         state = self.core.restore(path)
         self.acting.load_state(state)
         self.data.load_state(state)
-        self.data.read(self.core.checkpoint_folder(path))
+        self.data.read(checkpoint_folder(path))

@@ -27,8 +27,8 @@ import sys
 import time
 
 import numpy as np
-import torch
 
+from cluster import process
 from cluster.bench.common import emit
 from cluster.bench.load import LoadGenerator
 from cluster.commands import add_command
@@ -94,10 +94,10 @@ def cmd_learn(args: argparse.Namespace) -> int:
         *args.set,  # a --set run.torch_threads=... comes later and wins
     ]
     cfg = load_train_config(args.algo, args.env, [], overrides)
-    torch.set_num_threads(1)
     started = time.monotonic()
+    process.configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=args.seeds)
-    if not trainer.core.info.has_wins:
+    if not trainer.core.ctx.info.has_wins:
         raise UsageError(f"{args.env} reports no battle wins; bench learn needs a map that does")
     steps: list[int | None] = [None] * args.seeds
     wall: list[float | None] = [None] * args.seeds
@@ -132,7 +132,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
             "test_episodes": cfg.run.test_episodes,
             "overrides": args.set,
             "torch_threads": cfg.run.torch_threads or "auto",
-            "threads_used": trainer.core.threads.used,
+            "threads_used": process.threads_used(),
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
             "env_steps": steps,
             "wall_s": wall,

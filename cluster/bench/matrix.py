@@ -9,12 +9,11 @@ from __future__ import annotations
 import argparse
 import time
 
-import torch
-
 from cluster.bench.common import emit
 from cluster.commands import add_command
 from cluster.config.train import load_train_config
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _time(algo: str, env: str, t_max: int, n_ensemble: int, seed: int) -> float:
     cfg = load_train_config(algo, env, [], [f"run.t_max={t_max}", f"run.seed={seed}"])
+    configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=n_ensemble)
     started = time.perf_counter()
     trainer.train()
@@ -41,7 +41,6 @@ def _time(algo: str, env: str, t_max: int, n_ensemble: int, seed: int) -> float:
 
 
 def cmd_matrix(args: argparse.Namespace) -> int:
-    torch.set_num_threads(1)
     batched = _time(args.algo, args.env, args.t_max, args.seeds, 0)
     one_by_one = sum(_time(args.algo, args.env, args.t_max, 1, s) for s in range(args.seeds))
     steps = args.seeds * args.t_max

@@ -36,13 +36,13 @@ from learner.registry import get_algo
 # The training run of the RSS figure, in a fresh process (argv: env, algo, seeds, steps).
 CHILD = """
 import json, sys, time
-import torch
-torch.set_num_threads(1)
 from cluster.config.train import load_train_config
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 env, algo, seeds, steps = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 cfg = load_train_config(algo, env, [], [f"run.t_max={steps}", f"run.test_interval={10 * steps}"])
 started = time.perf_counter()
+configure(cfg.run)
 trainer = LocalTrainer(cfg, n_ensemble=seeds)
 trainer.train()
 stored = sum(b.stats()["episode_bytes"] for b in trainer.data.buffers)

@@ -182,7 +182,9 @@ def run_trainer(cfg, work: Path, args: argparse.Namespace, train: bool) -> dict[
     import ray
 
     from cluster.launch.cluster import ClusterTrainer
+    from cluster.process import configure
 
+    configure(cfg.run)
     trainer = ClusterTrainer(cfg, work)
     if not train:
         trainer.buffer.tables = limiter_off(trainer.buffer.tables)

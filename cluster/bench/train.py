@@ -35,6 +35,7 @@ from cluster.commands import add_command
 from cluster.config.train import load_train_config
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 from learner.timers import TIMERS
 
 # part name -> the section paths (exclusive seconds) that make it up
@@ -96,6 +97,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides.append(f"run.test_interval={args.test_interval}")
     cfg = load_train_config(args.algo, args.env, [], overrides + args.set)
     load_before = os.getloadavg()
+    configure(cfg.run)
     with tempfile.TemporaryDirectory(prefix="credit-bench-train-") as tmp:
         trainer = LocalTrainer(
             cfg, n_ensemble=args.seeds, checkpoint_dir=Path(tmp) if args.save_interval else None
@@ -120,7 +122,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             "steps": args.steps,
             "overrides": args.set,
             "torch_threads": cfg.run.torch_threads,
-            "precision": core.precision,  # run.precision as this machine runs it
+            "precision": core.learning.precision,  # run.precision as this machine runs it
             "t_env": core.t_env,
             "env_steps_total": core.t_env * args.seeds,
             "total_s": round(total, 3),

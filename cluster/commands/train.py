@@ -23,6 +23,7 @@ from cluster.core import EvalRecord, write_json
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer
 from cluster.metrics.run_loggers import RunLoggers, check_installed
+from cluster.process import configure
 from learner.common import NonFiniteLossError
 from learner.registry import ALGOS
 
@@ -116,6 +117,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_installed(cfg.run.loggers)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(config_text(cfg, args.config))
+    configure(cfg.run)  # this process's torch threads and seed, its allocator
     if args.mode == "cluster":
         trainer, records = _train_cluster(cfg, out, args)
     else:
@@ -164,14 +166,14 @@ def _run(trainer, out: Path, append: bool) -> list[EvalRecord]:
     final evaluation at the last t_env if the schedule did not end on one."""
     core = trainer.core
     records: list[EvalRecord] = []
-    loggers = RunLoggers(core.cfg.run.loggers, out, core.cfg.to_yaml_dict(), append)
+    cfg = core.ctx.cfg
+    loggers = RunLoggers(cfg.run.loggers, out, cfg.to_yaml_dict(), append)
     try:
 
         def on_eval(recs: list[EvalRecord]) -> None:
             records.extend(recs)
             loggers.log(recs, core.take_metric_means())
 
-        cfg = core.cfg
         log.info(
             "training %s on %s for %d env steps -> %s",
             cfg.algo_name,

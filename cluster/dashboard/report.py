@@ -19,6 +19,7 @@ from actors.envs.registry import make_vec_env
 from cluster.config.schema import read_yaml
 from cluster.config.train import build_train_config
 from cluster.core import TrainerCore
+from cluster.process import configure
 from cluster.repro.curves import Curve, plot
 
 log = logging.getLogger(__name__)
@@ -77,11 +78,13 @@ def write_report(run_dir: Path, episodes: int = 100, gif_tries: int = 10) -> Dem
     from actors.episode_gifs import render_policy_episode
 
     cfg = build_train_config(read_yaml(run_dir / "config.yaml"))
+    configure(cfg.run)  # the run's torch threads, as it trained
     core = TrainerCore(cfg, 1)
     core.restore(run_dir / "checkpoint")
+    learning = core.learning
     seed = cfg.run.seed + 50_000  # episodes neither training nor its evaluations played
-    evaluator = core.local_worker(make_vec_env(cfg.env.id, episodes, seed=seed), seed)
-    core.sync_worker(evaluator)
+    evaluator = learning.local_worker(make_vec_env(cfg.env.id, episodes, seed=seed), seed)
+    learning.sync_worker(evaluator)
     result = evaluator.run_round(greedy=True)
 
     curve_png = run_dir / "learning_curve.png"
@@ -89,8 +92,8 @@ def write_report(run_dir: Path, episodes: int = 100, gif_tries: int = 10) -> Dem
     title = f"{cfg.algo_name} on {cfg.env.id}: greedy evaluations during `credit demo`"
     plot([curve], cfg.env.id, curve_png, title=title)
 
-    player = core.local_worker(make_vec_env(cfg.env.id, 1, seed=seed + 1), seed + 1)
-    core.sync_worker(player)
+    player = learning.local_worker(make_vec_env(cfg.env.id, 1, seed=seed + 1), seed + 1)
+    learning.sync_worker(player)
     replay = render_policy_episode(
         player, run_dir / "policy.gif", f"{cfg.algo_name} {cfg.env.id}", tries=gif_tries
     )

@@ -20,6 +20,7 @@ from pathlib import Path
 from cluster.config.train import load_train_config
 from cluster.inspect.rdn_diagnostics import own_action_credit
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 
 
 def run(
@@ -28,6 +29,7 @@ def run(
     """Train and measure; each evaluation's line goes to `emit` and is appended to `out`
     (emptied first). Returns the number of lines."""
     cfg = load_train_config("rdn", env, [], [f"run.t_max={t_max}", *sets])
+    configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=seeds)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("")

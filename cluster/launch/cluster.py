@@ -15,7 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cluster.config.train import TrainConfig
-from cluster.core import EvalRecord, TrainerCore
+from cluster.core import TrainerCore
+from cluster.evaluation import EvalRecord
 from cluster.launch.buffer_proc import BufferProcess
 from cluster.launch.ray_sides import RayActing, ServiceData
 from cluster.loop import TrainLoop, check_modes
@@ -32,6 +33,7 @@ class ClusterTrainer:
     Calling loop::
 
         cluster_ray.connect(address, num_cpus)      # ray.init on loopback
+        process.configure(cfg.run)                  # threads, seed, allocator
         trainer = ClusterTrainer(cfg, out_dir)
         trainer.restore(out_dir / "checkpoint")     # optional (--resume)
         trainer.start()
@@ -53,11 +55,11 @@ class ClusterTrainer:
         self.core = core = TrainerCore(
             cfg, n_ensemble, self.out / "checkpoint", actors=cfg.cluster.actors
         )
-        check_modes(core, ensemble_ok=False)
-        self.plan = core.plan
+        check_modes(core.ctx, ensemble_ok=False)
+        self.plan = core.ctx.plan
         self.buffer = BufferProcess(
             self.plan.tables,
-            core.info.schema(),
+            core.ctx.info.schema(),
             self.out / "buffer",
             fsync=self.ccfg.fsync,
             metrics=self.ccfg.metrics,
@@ -71,8 +73,10 @@ class ClusterTrainer:
             LearnerMetrics(algo=cfg.algo_name, family=family) if self.ccfg.metrics else None
         )
         self.stats = LoopStats()
-        self.data = ServiceData(core, self.stats, self.buffer, self.metrics)
-        self.acting = RayActing(core, self.out, self.buffer, self.stats, self.metrics)
+        self.data = ServiceData(core.ctx, core.learning, self.stats, self.buffer, self.metrics)
+        self.acting = RayActing(
+            core.ctx, core.learning, self.out, self.buffer, self.stats, self.metrics
+        )
         self.loop = TrainLoop(core, self.acting, self.data, self.stats)
 
     # -- what callers read -------------------------------------------------------------------
@@ -101,7 +105,7 @@ class ClusterTrainer:
         """Start the buffer service, the coordinator and the rollout actors."""
         self.buffer.start()
         self.data.connect()
-        self.acting.start()
+        self.acting.start(self.core.t_env, self.core.episodes)
         log.info(
             "%d rollout actors, buffer service on %s:%d",
             len(self.acting.actors),

@@ -16,7 +16,10 @@ from buffer_service.episode import EpisodeBatch
 from buffer_service.local import LocalBuffer
 from cluster.batches import BatchPairer
 from cluster.config.train import TrainConfig
-from cluster.core import EvalRecord, TrainerCore
+from cluster.context import RunContext
+from cluster.core import TrainerCore
+from cluster.evaluation import EvalRecord
+from cluster.learning import Learning
 from cluster.loop import Pair, RateLimitDeadlockError, TrainLoop, check_modes, drop_stale
 from cluster.messages import actor_seed
 from cluster.metrics.loop_stats import LoopStats
@@ -30,18 +33,19 @@ class LocalData:
     """E members' buffer tables in this process (`buffer_service.local.LocalBuffer`).
 
     Args:
-        core: the run (its data plan, seed, schema, learner version).
+        ctx: the run (its data plan, seed, schema).
+        learning: the learner (its version, for run.max_policy_lag).
         stats: the loop's counters.
     """
 
-    def __init__(self, core: TrainerCore, stats: LoopStats) -> None:
-        self.core, self.stats, self.plan = core, stats, core.plan
-        seed, schema = core.cfg.run.seed, core.info.schema()
+    def __init__(self, ctx: RunContext, learning: Learning, stats: LoopStats) -> None:
+        self.ctx, self.learning, self.stats, self.plan = ctx, learning, stats, ctx.plan
+        seed, schema = ctx.run.seed, ctx.info.schema()
         self.buffers = [
             LocalBuffer(
                 self.plan.tables, seed * 1000 + k, schema, store_state=self.plan.store_state
             )
-            for k in range(core.E)
+            for k in range(ctx.n_ensemble)
         ]
         self.update_credit = 0.0  # learner steps owed to the episodes inserted so far
         self.pairer = BatchPairer(self.plan, self._take, self._ready)
@@ -87,7 +91,7 @@ class LocalData:
         return all(b.ready(table, n) for b in self.buffers)
 
     def _take(self, table: str, n: int) -> EpisodeBatch | None:
-        limit, version = self.core.cfg.run.max_policy_lag, self.core.learner.updates
+        limit, version = self.ctx.run.max_policy_lag, self.learning.version
         self.stats.sample_requests += len(self.buffers)
         members = []
         for buf in self.buffers:
@@ -130,27 +134,28 @@ class LocalActing:
     network (or a CPU copy, run.acting_weights), inserting each round into `data`.
 
     Args:
-        core: the run.
+        ctx: the run.
+        learning: the learner the worker acts with.
         data: where the rounds go.
     """
 
-    def __init__(self, core: TrainerCore, data: LocalData) -> None:
-        self.core, self.data = core, data
-        run = core.cfg.run
+    def __init__(self, ctx: RunContext, learning: Learning, data: LocalData) -> None:
+        self.ctx, self.learning, self.data = ctx, learning, data
+        env, run = ctx.cfg.env, ctx.run
         seed = actor_seed(run.seed, 0)
-        venv = make_vec_env(core.cfg.env.id, core.E * run.num_envs, seed=seed, **core.cfg.env.args)
-        self.worker = core.local_worker(venv, seed)
+        venv = make_vec_env(env.id, ctx.n_ensemble * run.num_envs, seed=seed, **env.args)
+        self.worker = learning.local_worker(venv, seed)
 
-    def act(self) -> tuple[int, int]:
-        """One round of every env, inserted; returns (env steps per member, episodes per
-        member)."""
-        core, per = self.core, self.core.cfg.run.num_envs
-        core.sync_worker(self.worker)
-        result = self.worker.run_round(t_env=core.t_env)
+    def act(self, t_env: int, episodes: int) -> tuple[int, int]:
+        """One round of every env at the loop's `t_env`, inserted; returns (env steps per
+        member, episodes per member)."""
+        per = self.ctx.run.num_envs
+        self.learning.sync_worker(self.worker)
+        result = self.worker.run_round(t_env=t_env)
         self.data.insert(result.episodes, per)
-        return result.env_steps // core.E, per
+        return result.env_steps // self.ctx.n_ensemble, per
 
-    def updated(self, seconds: float) -> None:
+    def updated(self, seconds: float, metrics: dict[str, float]) -> None:
         """Nothing to publish: the worker syncs with the learner before each round."""
 
     def evaluated(self, records: list[EvalRecord]) -> None:
@@ -175,6 +180,7 @@ class LocalTrainer:
 
     Calling loop::
 
+        process.configure(cfg.run)         # the entry point's: threads, seed, allocator
         trainer = LocalTrainer(cfg, n_ensemble=1)
         trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
         trainer.save(path)
@@ -182,11 +188,11 @@ class LocalTrainer:
 
     def __init__(self, cfg: TrainConfig, n_ensemble: int = 1, checkpoint_dir: Path | None = None):
         self.core = core = TrainerCore(cfg, n_ensemble, checkpoint_dir)
-        check_modes(core, ensemble_ok=True)
+        check_modes(core.ctx, ensemble_ok=True)
         self.E = n_ensemble
         self.stats = LoopStats()
-        self.data = LocalData(core, self.stats)
-        self.acting = LocalActing(core, self.data)
+        self.data = LocalData(core.ctx, core.learning, self.stats)
+        self.acting = LocalActing(core.ctx, core.learning, self.data)
         self.loop = TrainLoop(core, self.acting, self.data, self.stats)
 
     @property

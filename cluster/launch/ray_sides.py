@@ -15,9 +15,12 @@ import ray
 from buffer_service.client import BufferClient, RateLimitedError
 from buffer_service.episode import EpisodeBatch
 from cluster.batches import BatchPairer
-from cluster.core import EvalRecord, TrainerCore, write_json
+from cluster.context import RunContext
+from cluster.core import write_json
+from cluster.evaluation import EvalRecord
 from cluster.launch.buffer_proc import BufferProcess
 from cluster.launch.ray_actors import Coordinator, RolloutActor
+from cluster.learning import Learning
 from cluster.loop import Pair, drop_stale
 from cluster.messages import ActorConfig, ActorDescription, BufferAddress, actor_seed
 from cluster.metrics.discovery import register_run_sd, unregister_run_sd
@@ -33,7 +36,8 @@ class ServiceData:
     """Batches from the buffer service, whose limiter paces the learner against the actors.
 
     Args:
-        core: the run (data plan, learner version, run.max_policy_lag).
+        ctx: the run (data plan, schema, run.max_policy_lag).
+        learning: the learner (its version).
         stats: the loop's counters.
         buffer: the service's child process (address, token).
         metrics: the learner's exporter, or None.
@@ -41,14 +45,16 @@ class ServiceData:
 
     def __init__(
         self,
-        core: TrainerCore,
+        ctx: RunContext,
+        learning: Learning,
         stats: LoopStats,
         buffer: BufferProcess,
         metrics: LearnerMetrics | None,
     ) -> None:
-        self.core, self.stats, self.buffer, self.metrics = core, stats, buffer, metrics
-        self.timeout_s = core.cfg.cluster.sample_timeout_s
-        self.pairer = BatchPairer(core.plan, self._sample)
+        self.ctx, self.learning, self.stats = ctx, learning, stats
+        self.buffer, self.metrics = buffer, metrics
+        self.timeout_s = ctx.cfg.cluster.sample_timeout_s
+        self.pairer = BatchPairer(ctx.plan, self._sample)
         self.client: BufferClient | None = None
 
     def connect(self) -> None:
@@ -56,7 +62,7 @@ class ServiceData:
             self.buffer.host,
             self.buffer.port,
             token=self.buffer.token,
-            schema=self.core.info.schema(),
+            schema=self.ctx.info.schema(),
             # Few retries (about 3 s of backoff): the loop is what restarts a dead service
             # (`RayActing.act`), so it must not sit in a request retrying against it.
             max_retries=6,
@@ -91,7 +97,7 @@ class ServiceData:
             return None
         finally:
             self.stats.sample_s += time.perf_counter() - started
-        limit, version = self.core.cfg.run.max_policy_lag, self.core.learner.updates
+        limit, version = self.ctx.run.max_policy_lag, self.learning.version
         episodes, lags = drop_stale(episodes, version, limit, self.stats)
         if self.metrics:
             self.metrics.record_policy_lag(lags)
@@ -114,7 +120,8 @@ class RayActing:
     """`cluster.actors` Ray rollout actors, their coordinator, and their supervision.
 
     Args:
-        core: the run.
+        ctx: the run.
+        learning: the learner (its acting network, weights and version).
         out: the run's folder (cluster.json, targets.json).
         buffer: the buffer service's child process (restarted here if it dies).
         stats: the loop's counters (publish time).
@@ -123,20 +130,16 @@ class RayActing:
 
     def __init__(
         self,
-        core: TrainerCore,
+        ctx: RunContext,
+        learning: Learning,
         out: Path,
         buffer: BufferProcess,
         stats: LoopStats,
         metrics: LearnerMetrics | None,
     ) -> None:
-        self.core, self.out, self.buffer, self.stats, self.metrics = (
-            core,
-            out,
-            buffer,
-            stats,
-            metrics,
-        )
-        self.ccfg = core.cfg.cluster
+        self.ctx, self.learning, self.out = ctx, learning, out
+        self.buffer, self.stats, self.metrics = buffer, stats, metrics
+        self.ccfg = ctx.cfg.cluster
         self.coordinator = None
         self.actors: list = []
         self.loops: dict = {}  # ObjectRef of a running `run` -> actor index
@@ -149,7 +152,7 @@ class RayActing:
 
     def actor_config(self, actor_id: int) -> ActorConfig:
         """What actor `actor_id` is configured with: its own section of the run, no more."""
-        cfg = self.core.cfg
+        cfg = self.ctx.cfg
         return ActorConfig(
             actor_id=actor_id,
             env_id=cfg.env.id,
@@ -157,19 +160,18 @@ class RayActing:
             num_envs=cfg.run.num_envs,
             seed=actor_seed(cfg.run.seed, actor_id),
             exploration=cfg.exploration,
-            acting=self.core.learner.acting,
+            acting=self.learning.learner.acting,
             metrics=self.ccfg.metrics,
             bind_host=self.ccfg.bind_host,
-            send_state=self.core.plan.store_state,
+            send_state=self.ctx.plan.store_state,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------
-    def start(self) -> None:
-        """Start the coordinator and the rollout actors (the buffer service is running)."""
+    def start(self, t_env: int, episodes: int) -> None:
+        """Start the coordinator, counting from the loop's totals, and the rollout actors (the
+        buffer service is running)."""
         name = f"credit-coordinator-{os.getpid()}-{time.time_ns()}"  # one per run and Ray job
-        self.coordinator = Coordinator.options(name=name).remote(
-            self.core.t_env, self.core.episodes
-        )
+        self.coordinator = Coordinator.options(name=name).remote(t_env, episodes)
         self.publish()
         address = BufferAddress(self.buffer.host, self.buffer.port, self.buffer.token)
         for i in range(self.ccfg.actors):
@@ -244,18 +246,18 @@ class RayActing:
         self.loops[self.actors[i].run.remote()] = i
 
     # -- the acting side of the loop ---------------------------------------------------------
-    def act(self) -> tuple[int, int]:
-        """Restart what died; return the env steps and episodes the actors reported since the
-        last call (the coordinator's totals less the loop's)."""
+    def act(self, t_env: int, episodes: int) -> tuple[int, int]:
+        """Restart what died; return the env steps and episodes the actors reported beyond
+        the loop's totals `t_env` and `episodes` (the coordinator's totals less the loop's)."""
         self._supervise()
         report = ray.get(self.coordinator.progress.remote())
-        return report.t_env - self.core.t_env, report.episodes - self.core.episodes
+        return report.t_env - t_env, report.episodes - episodes
 
-    def updated(self, seconds: float) -> None:
-        """Record the update; publish the weights every cluster.publish_interval updates."""
-        learner = self.core.learner
+    def updated(self, seconds: float, metrics: dict[str, float]) -> None:
+        """Record the update and its metrics; publish the weights every
+        cluster.publish_interval updates."""
+        learner = self.learning.learner
         if self.metrics:
-            metrics = self.core.last_metrics
             self.metrics.record_update(seconds, metrics, learner.updates)
             if "kl_masked_fraction" in metrics:
                 self.metrics.set_kl_masked_fraction(metrics["kl_masked_fraction"])
@@ -269,7 +271,7 @@ class RayActing:
             self.metrics.record_test(records[0].test_return_mean, records[0].test_won_mean)
 
     def publish(self) -> None:
-        weights = self.core.learner.get_weights()
+        weights = self.learning.learner.get_weights()
         ref = ray.put(weights)  # once per version; every actor reads this one object
         ray.get(self.coordinator.publish.remote(weights.version, [ref]))
 

@@ -92,7 +92,6 @@ def run_pair(
     env: str,
     seeds: int,
     overrides: list[str],
-    threads: int,
     checkpoint: bool = False,
     resume: ResumeConfig | None = None,
     report: Callable[[str], None] | None = None,
@@ -107,14 +106,13 @@ def run_pair(
             from (`cluster.repro.resume`); None: no checkpoints.
         report: called with one JSON line per evaluation (the pair's evaluation log).
     """
-    import torch
-
     from cluster.config.train import load_train_config
     from cluster.launch.local import LocalTrainer
+    from cluster.process import configure
 
-    torch.set_num_threads(threads)
     with PairJournal(resume, Pair(algo, env), report) as journal:
         cfg = load_train_config(algo, env, [], overrides + journal.overrides())
+        configure(cfg.run)  # the pair's torch threads (run.torch_threads) and seed
         trainer = LocalTrainer(cfg, n_ensemble=seeds)
         journal.attach(trainer)
 
@@ -335,7 +333,7 @@ def run(
         if checkpoint_dir is not None:
             write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
 
-    args = (seeds, overrides, 1, checkpoint_dir is not None, resume)
+    args = (seeds, overrides, checkpoint_dir is not None, resume)
     status = StatusLine(total_steps, "won", "win") if total_steps else None
     store = None
     if resume is not None and resume.out is not None:

@@ -47,21 +47,19 @@ def run_pair(
     game: str,
     seeds: int,
     overrides: list[str],
-    threads: int,
     resume: ResumeConfig | None = None,
     report: Callable[[str], None] | None = None,
 ) -> Curve:
     """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer; `report` gets one
     JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s, commit}); `resume`:
     where it checkpoints and continues from (`cluster.repro.resume`), None for nowhere."""
-    import torch
-
     from cluster.config.train import load_train_config
     from cluster.launch.local import LocalTrainer
+    from cluster.process import configure
 
-    torch.set_num_threads(threads)
     with PairJournal(resume, Pair(algo, game), report) as journal:
         cfg = load_train_config(algo, game, [], overrides + journal.overrides())
+        configure(cfg.run)  # the pair's torch threads (run.torch_threads) and seed
         trainer = LocalTrainer(cfg, n_ensemble=seeds)
         journal.attach(trainer)
 
@@ -167,7 +165,7 @@ def run(
     store = None
     if resume is not None and resume.out is not None:
         store = PairStore(resume, lambda c: dict(c.__dict__), lambda d: Curve(**d))
-    args = (seeds, overrides, 1, resume)
+    args = (seeds, overrides, resume)
     return run_pairs(run_pair, pairs, args, fan, log_dir, None, status, store)
 
 

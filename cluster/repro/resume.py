@@ -104,9 +104,9 @@ class ResumeConfig:
 
 def _checkpoint_journal(folder: Path) -> Path:
     """The journal of the checkpoint `TrainerCore.save` left in `folder` (or its .old copy)."""
-    from cluster.core import TrainerCore
+    from cluster.checkpoint import checkpoint_folder
 
-    return TrainerCore.checkpoint_folder(folder) / JOURNAL
+    return checkpoint_folder(folder) / JOURNAL
 
 
 def _check_settings(saved: dict, wanted: dict, what: str, where: Path) -> None:
@@ -159,6 +159,7 @@ class PairJournal:
 
         with PairJournal(resume, Pair(algo, env), report) as journal:
             cfg = load_train_config(algo, env, [], overrides + journal.overrides())
+            configure(cfg.run)
             trainer = LocalTrainer(cfg, n_ensemble=seeds)
             journal.attach(trainer)          # continues from the checkpoint, if any
             trainer.train(on_eval=lambda records: journal.add(row_of(records)))
@@ -209,7 +210,7 @@ class PairJournal:
         if self.folder is None:
             return
         self.lock = _lock(self.folder)
-        trainer.core.checkpoint_dir = self.folder
+        trainer.core.checkpointer.folder = self.folder
         trainer.loop.checkpoint_files.append(self._write)
         journal = _checkpoint_journal(self.folder)
         if not journal.exists():
@@ -268,7 +269,7 @@ class PairJournal:
         if self.folder is None or self.trainer is None:
             return
         self.trainer.loop.checkpoint_files.remove(self._write)
-        self.trainer.core.checkpoint_dir = None
+        self.trainer.core.checkpointer.folder = None
         for suffix in ("", ".old", ".tmp"):
             shutil.rmtree(self.folder.with_name(self.folder.name + suffix), ignore_errors=True)
         Path(self.lock.name).unlink(missing_ok=True)

@@ -9,6 +9,7 @@ import torch
 from cluster.config.schema import ConfigError
 from cluster.config.train import load_train_config
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 
 # QMIX on skirmish/3m, small enough for the fast tier: recurrent agents, the mixer, the replay
 # and the greedy evaluation all run; a batch of 4 from the first 8 episodes.
@@ -22,8 +23,15 @@ SMALL = [
 ]
 
 
+def trainer_of(*overrides: str) -> LocalTrainer:
+    """A QMIX trainer on skirmish/3m, its process configured as an entry point does."""
+    cfg = load_train_config("qmix", "skirmish/3m", [], [*SMALL, *overrides])
+    configure(cfg.run)
+    return LocalTrainer(cfg)
+
+
 def train(*overrides: str) -> tuple[LocalTrainer, list]:
-    trainer = LocalTrainer(load_train_config("qmix", "skirmish/3m", [], [*SMALL, *overrides]))
+    trainer = trainer_of(*overrides)
     records: list = []
     trainer.train(on_eval=records.extend)
     return trainer, records
@@ -37,7 +45,7 @@ def test_acting_on_cpu_copies_gives_exactly_the_shared_modules_run():
     shared, shared_records = train("run.acting_weights=shared")
     copied, copied_records = train("run.acting_weights=copy")
     assert shared.worker.agent is shared.core.learner.agent
-    for worker in (copied.worker, copied.core.test_worker):
+    for worker in (copied.worker, copied.core.evaluator.worker):
         assert worker.agent is not copied.core.learner.agent
         assert all(p.device.type == "cpu" for p in worker.agent.parameters())
     assert copied.core.learner.updates > 0
@@ -51,22 +59,20 @@ def test_acting_on_cpu_copies_gives_exactly_the_shared_modules_run():
 
 
 def test_a_copy_follows_the_learner_only_when_it_moves_on():
-    trainer = LocalTrainer(
-        load_train_config("qmix", "skirmish/3m", [], [*SMALL, "run.acting_weights=copy"])
-    )
-    core, worker = trainer.core, trainer.worker
-    core.sync_worker(worker)
-    assert worker.version == core.learner.updates == 0
+    trainer = trainer_of("run.acting_weights=copy")
+    learning, worker = trainer.core.learning, trainer.worker
+    learning.sync_worker(worker)
+    assert worker.version == learning.learner.updates == 0
     with torch.no_grad():
-        for p in core.learner.agent.parameters():
+        for p in learning.learner.agent.parameters():
             p.add_(1.0)  # the learner's weights change, its version does not
-    core.sync_worker(worker)
+    learning.sync_worker(worker)
     first = next(iter(worker.agent.parameters()))
-    assert not torch.equal(first, next(iter(core.learner.agent.parameters())))
-    core.learner.updates += 1  # a new version: the copy loads it
-    core.sync_worker(worker)
+    assert not torch.equal(first, next(iter(learning.learner.agent.parameters())))
+    learning.learner.updates += 1  # a new version: the copy loads it
+    learning.sync_worker(worker)
     assert worker.version == 1
-    for a, b in zip(worker.agent.parameters(), core.learner.agent.parameters(), strict=True):
+    for a, b in zip(worker.agent.parameters(), learning.learner.agent.parameters(), strict=True):
         assert torch.equal(a, b)
 
 
@@ -89,7 +95,7 @@ def test_bad_device_settings_name_the_key(overrides, message):
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error of a CUDA-less torch")
 def test_a_cuda_learner_without_a_gpu_is_refused_naming_the_key():
     with pytest.raises(ConfigError, match=r"run\.device='cuda', but this torch sees no CUDA"):
-        LocalTrainer(load_train_config("qmix", "skirmish/3m", [], [*SMALL, "run.device=cuda"]))
+        trainer_of("run.device=cuda")
 
 
 @pytest.mark.gpu
@@ -97,14 +103,14 @@ def test_a_cuda_learner_without_a_gpu_is_refused_naming_the_key():
 def test_a_cuda_learner_trains_while_workers_act_on_cpu_copies(tmp_path):
     trainer, records = train("run.device=cuda")
     core = trainer.core
-    assert core.acting_weights == "copy"
+    assert core.learning.acting_weights == "copy"
     assert all(p.device.type == "cuda" for p in core.learner.agent.parameters())
     assert core.learner.updates > 0 and records
-    for worker in (trainer.worker, core.test_worker):
-        core.sync_worker(worker)
+    for worker in (trainer.worker, core.evaluator.worker):
+        core.learning.sync_worker(worker)
         for a, b in zip(worker.agent.parameters(), core.learner.agent.parameters(), strict=True):
             assert a.device.type == "cpu" and torch.equal(a, b.cpu())
     trainer.save(tmp_path / "checkpoint")  # a cuda checkpoint restores on a CPU learner
-    cpu = LocalTrainer(load_train_config("qmix", "skirmish/3m", [], SMALL))
+    cpu = trainer_of()
     cpu.restore(tmp_path / "checkpoint")
     assert cpu.core.learner.updates == core.learner.updates

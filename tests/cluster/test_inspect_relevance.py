@@ -11,6 +11,7 @@ from cluster.cli import main
 from cluster.config.train import load_train_config
 from cluster.inspect.relevance import credit, find_checkpoint, load_member, play
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 
 ENV = "skirmish/bane_z1"  # 1 zergling + 4 banelings against 20 + 4: short episodes
 SMALL = ["run.test_episodes=1", "run.num_envs=1", "replay.batch_size=2", "algo.agent.hidden=8"]
@@ -19,6 +20,7 @@ SMALL = ["run.test_episodes=1", "run.num_envs=1", "replay.batch_size=2", "algo.a
 def _checkpoint(tmp_path, algo: str, seeds: int = 1):
     """An untrained run's checkpoint (random networks) in `credit train`'s layout."""
     cfg = load_train_config(algo, ENV, [], SMALL)
+    configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=seeds)
     run = tmp_path / f"{algo}_run"
     trainer.save(run / "checkpoint")

@@ -22,6 +22,7 @@ from cluster.config.train import load_train_config
 from cluster.launch.buffer_proc import table_arg
 from cluster.launch.local import LocalTrainer
 from cluster.messages import ActorConfig, actor_seed
+from cluster.process import configure
 from learner.registry import ALGOS
 
 TWO_STEP = ["run.test_interval=50", "replay.batch_size=4", "replay.capacity=100000"]
@@ -31,8 +32,15 @@ def _cfg(algo="vdn", env="matrix/two_step", *sets):
     return load_train_config(algo, env, [], [*TWO_STEP, *sets])
 
 
+def _trainer(*sets: str, **kwargs) -> LocalTrainer:
+    """A local VDN trainer on matrix/two_step, its process configured as an entry point does."""
+    cfg = _cfg("vdn", "matrix/two_step", *sets)
+    configure(cfg.run)
+    return LocalTrainer(cfg, **kwargs)
+
+
 def test_local_inserts_are_validated_against_the_schema():
-    trainer = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=4"))
+    trainer = _trainer("run.t_max=4")
     trainer.train()
     good = trainer.data.buffers[0].sample_episodes("replay", 1)[0].unpack()  # (no state: vdn)
     bad = dataclasses.replace(good, actions=good.actions + 100, episode_seq=10**9)
@@ -49,10 +57,10 @@ def test_a_held_back_local_insert_waits_for_the_learner_to_catch_up():
     """Rounds inserted without their updates put the learner behind the limiter's slack;
     the loop's `catch_up` then takes exactly the updates the limiter needs, as a Ray actor's
     insert would wait for them."""
-    trainer = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=1000"))
+    trainer = _trainer("run.t_max=1000")
     data = trainer.data
     for _ in range(20):  # 20 episodes, no updates
-        trainer.acting.act()
+        trainer.acting.act(0, 0)
     assert not data.buffers[0].can_insert()
     taken = list(data.catch_up())
     assert taken and data.buffers[0].can_insert()
@@ -66,9 +74,9 @@ def test_a_held_back_local_insert_waits_for_the_learner_to_catch_up():
 def test_local_deadlock_of_the_limiter_is_an_error_not_a_hang():
     from cluster.loop import RateLimitDeadlockError
 
-    trainer = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=1000"))
+    trainer = _trainer("run.t_max=1000")
     for _ in range(20):
-        trainer.acting.act()
+        trainer.acting.act(0, 0)
     trainer.data.buffers[0].state.tables["replay"].order.clear()
     with pytest.raises(RateLimitDeadlockError, match="rate limiter"):
         list(trainer.data.catch_up())
@@ -90,9 +98,9 @@ def test_extended_pg_tables_pass_their_joint_warm_up():
 
 
 def test_max_policy_lag_drops_stale_episodes_in_local_mode():
-    lagged = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300", "run.max_policy_lag=2"))
+    lagged = _trainer("run.t_max=300", "run.max_policy_lag=2")
     lagged.train()
-    free = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300"))
+    free = _trainer("run.t_max=300")
     free.train()
     assert lagged.stats.dropped_stale > 0 and free.stats.dropped_stale == 0
     assert max(lagged.stats.lag_counts) > 2  # stale episodes were sampled, then dropped
@@ -101,7 +109,7 @@ def test_max_policy_lag_drops_stale_episodes_in_local_mode():
 
 def test_modes_refuse_what_they_cannot_do_naming_the_key(tmp_path):
     with pytest.raises(ConfigError, match=r"run\.max_policy_lag"):
-        LocalTrainer(_cfg("vdn", "matrix/two_step", "run.max_policy_lag=3"), n_ensemble=2)
+        _trainer("run.max_policy_lag=3", n_ensemble=2)
     pytest.importorskip("ray")
     from cluster.launch.cluster import ClusterTrainer
 
@@ -116,13 +124,13 @@ def _learner_state(trainer):
 def test_local_resume_keeps_the_replay_and_continues_exactly(tmp_path):
     """Train 300 steps in one go, or 150, checkpoint, resume in a new trainer and train to
     300: the same weights, because the replay (and its sampling RNG) came back too."""
-    straight = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300"))
+    straight = _trainer("run.t_max=300")
     straight.train()
-    first = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=150"))
+    first = _trainer("run.t_max=150")
     first.train()
     first.save(tmp_path / "ckpt")
     assert (tmp_path / "ckpt" / "buffer" / "member-0").is_dir()
-    resumed = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300"))
+    resumed = _trainer("run.t_max=300")
     resumed.restore(tmp_path / "ckpt")
     held = resumed.data.buffers[0].stats()["tables"]["replay"]
     assert held == first.data.buffers[0].stats()["tables"]["replay"] and held["size"] > 0
@@ -137,7 +145,7 @@ def test_a_checkpoint_without_the_replay_holds_the_networks_and_resumes_with_an_
 ):
     """`save(path, replay=False)` (what `credit repro --checkpoints` writes): no buffer
     tables, the same learner state, and a resumed run starts from an empty replay."""
-    first = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=150"))
+    first = _trainer("run.t_max=150")
     first.train()
     first.save(tmp_path / "full")
     first.save(tmp_path / "small", replay=False)
@@ -146,7 +154,7 @@ def test_a_checkpoint_without_the_replay_holds_the_networks_and_resumes_with_an_
     full = torch.load(tmp_path / "full" / "learner.pt", weights_only=False)
     small = torch.load(tmp_path / "small" / "learner.pt", weights_only=False)
     assert all(torch.equal(full["agent"][k], small["agent"][k]) for k in full["agent"])
-    resumed = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=300"))
+    resumed = _trainer("run.t_max=300")
     resumed.restore(tmp_path / "small")
     assert resumed.core.t_env == first.core.t_env
     assert resumed.data.buffers[0].stats()["tables"]["replay"]["size"] == 0
@@ -231,7 +239,7 @@ def test_local_buffer_writes_and_reads_the_service_snapshot_format(tmp_path):
     from buffer_service.state import BufferState
     from buffer_service.storage import Storage
 
-    trainer = LocalTrainer(_cfg("vdn", "matrix/two_step", "run.t_max=40"))
+    trainer = _trainer("run.t_max=40")
     trainer.train()
     buf = trainer.data.buffers[0]
     buf.write(tmp_path / "snap")
@@ -245,8 +253,7 @@ def test_local_buffer_writes_and_reads_the_service_snapshot_format(tmp_path):
 
 
 def test_periodic_checkpoints_hold_the_tables(tmp_path):
-    cfg = _cfg("vdn", "matrix/two_step", "run.t_max=100", "run.save_interval=40")
-    trainer = LocalTrainer(cfg, checkpoint_dir=tmp_path / "ckpt")
+    trainer = _trainer("run.t_max=100", "run.save_interval=40", checkpoint_dir=tmp_path / "ckpt")
     trainer.train()  # no save at the end: only the periodic ones
     saved = torch.load(tmp_path / "ckpt" / "trainer.pt", weights_only=False)
     assert 40 <= saved["t_env"] < 100

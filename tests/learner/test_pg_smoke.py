@@ -10,6 +10,7 @@ import torch
 from cluster.cli import main
 from cluster.config.train import load_train_config
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 from learner.registry import ALGOS
 
 PG_ALGOS = sorted(name for name, spec in ALGOS.items() if spec.family == "pg")
@@ -20,15 +21,15 @@ SMALL = ["cycling.capacity=8", "replay.batch_size=4", "run.test_episodes=2"]
 @pytest.mark.parametrize("env", ["matrix/four_game", "skirmish/3m"])
 @pytest.mark.parametrize("name", PG_ALGOS)
 def test_trainer_smoke(name, env):
-    torch.manual_seed(0)
     t_max = 120 if env == "matrix/four_game" else 600
     cfg = load_train_config(name, env, [], [f"run.t_max={t_max}", *SMALL])
+    configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=2)
     records = []
     trainer.train(on_eval=records.extend)
     spec = ALGOS[name]
     assert trainer.core.learner.policy_kind == "softmax" and trainer.core.learner.updates > 0
-    m = trainer.core.last_metrics
+    m = trainer.core.means.last
     assert all(np.isfinite(v) for v in m.values())
     assert ("kl_masked_fraction" in m) == (name in ("mcac", "emcac"))
     assert ("loss_critic_extra" in m) == spec.extended
@@ -38,17 +39,18 @@ def test_trainer_smoke(name, env):
 
 
 def test_emcac_normalises_advantages_by_default_to_unit_scale():
-    torch.manual_seed(0)
-    overrides = ["run.t_max=600", *SMALL]
-    trainer = LocalTrainer(load_train_config("emcac", "skirmish/3m", [], overrides), 2)
+    cfg = load_train_config("emcac", "skirmish/3m", [], ["run.t_max=600", *SMALL])
+    configure(cfg.run)
+    trainer = LocalTrainer(cfg, 2)
     trainer.train()
-    m = trainer.core.last_metrics
+    m = trainer.core.means.last
     assert trainer.core.learner.updates > 0 and all(np.isfinite(v) for v in m.values())
     assert 0.1 < m["advantage_abs_mean"] < 3.0  # unit spread (the mean is not shifted)
 
 
 def test_metric_means_average_every_update_since_the_last_take():
     cfg = load_train_config("emcac", "matrix/four_game", [], ["run.t_max=200", *SMALL])
+    configure(cfg.run)
     trainer = LocalTrainer(cfg, n_ensemble=2)
     seen, step = [], trainer.core.learner.step
     trainer.core.learner.step = lambda *a: seen.append(step(*a)) or seen[-1]
@@ -57,7 +59,7 @@ def test_metric_means_average_every_update_since_the_last_take():
     means = trainer.core.take_metric_means()
     for key in ("entropy", "kl_masked_fraction", "loss_critic"):
         assert means[key] == pytest.approx(np.mean([m[key] for m in seen]))
-    assert trainer.core.last_metrics == seen[-1]
+    assert trainer.core.means.last == seen[-1]
     assert trainer.core.take_metric_means() == {}  # reset by the take
 
 

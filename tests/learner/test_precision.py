@@ -6,6 +6,7 @@ import torch
 from cluster.bench.update import record_batch
 from cluster.config.train import load_train_config
 from cluster.core import TrainerCore
+from cluster.process import configure
 from learner import precision
 from learner.precision import cpu_has_bf16, effective_precision
 
@@ -39,8 +40,9 @@ def test_config_refuses_an_unknown_precision():
 def one_update(algo: str, prec: str, batch) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """(metrics, the agent's float32 weights flattened before and after one update)."""
     cfg = load_train_config(algo, "skirmish/3m", [], [f"run.precision={prec}"])
+    configure(cfg.run)
     core = TrainerCore(cfg, 2)
-    assert core.precision == prec
+    assert core.learning.precision == prec
 
     def flat() -> torch.Tensor:
         params = list(core.learner.agent.parameters())

@@ -7,6 +7,7 @@ import torch
 from cluster.config.schema import ConfigError
 from cluster.config.train import load_train_config
 from cluster.launch.local import LocalTrainer
+from cluster.process import configure
 from learner.common import EpisodeClock, RewardNorm, Updater
 from learner.networks import AgentNet, unroll
 
@@ -94,6 +95,7 @@ def _schedule(algo: str, num_envs: int, upe: float, episodes: int) -> tuple[int,
             "run.test_interval=100000",
         ],
     )
+    configure(cfg.run)
     trainer = LocalTrainer(cfg)
     learner = trainer.core.learner
     refreshes = 0
