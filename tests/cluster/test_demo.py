@@ -16,8 +16,8 @@ import pytest
 from PIL import Image
 
 from cluster.cli import main
-from cluster.core import Progress
 from cluster.dashboard.report import write_report
+from cluster.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
 
