@@ -40,7 +40,7 @@ def test_the_report_evaluates_the_saved_policy_and_writes_curve_and_gif(tmp_path
 
 def test_progress_lines_give_env_steps_win_rate_and_throughput(caplog):
     bar = Progress(total=1000, every_s=0.0)  # not a terminal under pytest: log lines
-    with caplog.at_level(logging.INFO, logger="cluster.core"):
+    with caplog.at_level(logging.INFO, logger="cluster.progress"):
         bar.update(100, "win rate 0.10")
         time.sleep(0.05)
         bar.update(300, "win rate 0.40")

@@ -126,7 +126,7 @@ def test_status_line_counts_each_pairs_latest_evaluation(tmp_path, caplog):
     for pair, t, returns in rows:
         line = json.dumps({"t_env": t, "returns": returns})
         c.handle(PairEvent(pair, "evaluated", f"h:1:{pair.algo}", line))
-    with caplog.at_level("INFO", logger="cluster.core"):
+    with caplog.at_level("INFO", logger="cluster.progress"):
         c.tick()
     assert (
         "t_env 44/200 0/2 pairs done; return vdn@matrix/two_step 8.00, iql@matrix/two_step 7.00"
