@@ -33,7 +33,7 @@ class ClusterTrainer:
     Calling loop::
 
         cluster_ray.connect(address, num_cpus)      # ray.init on loopback
-        process.configure(cfg.run)                  # threads, seed, allocator
+        cluster.process.configure(cfg.run)          # threads, seed, allocator
         trainer = ClusterTrainer(cfg, out_dir)
         trainer.restore(out_dir / "checkpoint")     # optional (--resume)
         trainer.start()

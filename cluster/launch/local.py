@@ -180,7 +180,7 @@ class LocalTrainer:
 
     Calling loop::
 
-        process.configure(cfg.run)         # the entry point's: threads, seed, allocator
+        cluster.process.configure(cfg.run) # at the entry point: threads, seed, allocator
         trainer = LocalTrainer(cfg, n_ensemble=1)
         trainer.train(on_eval=print)       # returns when t_env reaches cfg.run.t_max
         trainer.save(path)
