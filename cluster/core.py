@@ -24,7 +24,7 @@ from cluster.config.train import TrainConfig
 from cluster.context import RunContext
 from cluster.evaluation import EvalRecord, Evaluator, make_test_envs
 from cluster.learning import Learning
-from cluster.progress import MetricMeans, Progress  # Progress: cluster.repro.pairs imports it here
+from cluster.progress import MetricMeans, Progress
 from learner.registry import Learner
 
 

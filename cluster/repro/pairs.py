@@ -140,7 +140,7 @@ def run_pair(fn: PairFn, pair: Pair, args: tuple, sink: EventSink) -> Any:
 
 @dataclass(frozen=True)
 class StatusLine:
-    """The driver's status line over every pair (`cluster.core.Progress`).
+    """The driver's status line over every pair (`cluster.progress.Progress`).
 
     Args:
         total_steps: env steps of all pairs together (the bar's 100%).
@@ -167,7 +167,7 @@ class Collector:
         self.latest: dict[Pair, dict] = {}  # each pair's latest evaluation line
         self.bar = None
         if status is not None:
-            from cluster.core import Progress
+            from cluster.progress import Progress
 
             self.bar = Progress(status.total_steps)
 
