@@ -18,11 +18,13 @@ from actors.envs.registry import env_name
 from cluster.commands import add_command
 from cluster.commands.repro_options import (
     add_run_options,
+    add_seed_group_option,
     check_algos,
     check_env_names,
     custom_as_file,
     fan_out_config,
     resume_config,
+    seed_group_overrides,
 )
 from cluster.config.train import load_train_config
 from cluster.core import write_json
@@ -69,11 +71,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="env steps per run (default: cluster/config/layers/envs/matrix.yaml)",
     )
     add_run_options(m)
+    add_seed_group_option(m)
     m.add_argument(
         "--summarise-only",
         action="store_true",
         help="train nothing: rebuild summary.json, the plots and report.html from "
-        "OUT/evals/*.jsonl (curves.json, which holds RDN's diagnostics, is kept)",
+        "OUT/evals/*.jsonl, every seed group of a pair merged (curves.json, which holds "
+        "RDN's diagnostics, is kept)",
     )
     m.set_defaults(func=cmd_matrix)
     register_emcac(rsub)
@@ -166,10 +170,12 @@ def _register_curves(
     )
     m.add_argument("--out", required=True, help="output folder")
     add_run_options(m)
+    add_seed_group_option(m)
     m.add_argument(
         "--summarise-only",
         action="store_true",
-        help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl",
+        help="train nothing: rebuild summary.json and plots from OUT/evals/*.jsonl, every "
+        "seed group of a pair merged into one curve",
     )
     m.add_argument(
         "--checkpoints",
@@ -204,10 +210,10 @@ def cmd_curves(
     overrides = sets + ([f"run.t_max={args.t_max}"] if args.t_max else [])
     if args.test_interval:
         overrides.append(f"run.test_interval={args.test_interval}")
-    t_max = 0
-    for g in envs:  # validates every (algo, env) config before any training starts
-        for a in algos:
-            t_max += load_train_config(a, g, [], overrides).run.t_max
+    # validates every (algo, env) config before any training starts
+    cfgs = [load_train_config(a, g, [], overrides) for g in envs for a in algos]
+    t_max = sum(c.run.t_max for c in cfgs)
+    overrides += seed_group_overrides(args, cfgs)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -221,9 +227,19 @@ def cmd_curves(
         resume = resume_config(args, out, overrides)
         curves = _run(
             lambda: repro_curves.run(
-                algos, envs, args.seeds, overrides, fan, out / "evals", checkpoints, t_max, resume
+                algos,
+                envs,
+                args.seeds,
+                overrides,
+                fan,
+                out / "evals",
+                checkpoints,
+                t_max,
+                resume,
+                args.seed_group,
             )
         )
+        curves = repro_curves.with_other_groups(curves, out / "evals")
     summary = repro_curves.summarise(curves)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
@@ -263,11 +279,13 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
-    optimum, t_max = {}, 0
+    optimum, t_max, every = {}, 0, []
     for g in games:  # validates every (algo, game) config before any training starts
         cfgs = [load_train_config(a, g, [], overrides) for a in algos]
         optimum[g] = repro_matrix.optimum_of(g, cfgs[0].env.args)
         t_max += sum(c.run.t_max for c in cfgs)
+        every += cfgs
+    overrides += seed_group_overrides(args, every)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -280,10 +298,19 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         resume = resume_config(args, out, overrides)
         curves = _run(
             lambda: repro_matrix.run(
-                algos, games, args.seeds, overrides, fan, out / "evals", t_max, resume
+                algos,
+                games,
+                args.seeds,
+                overrides,
+                fan,
+                out / "evals",
+                t_max,
+                resume,
+                args.seed_group,
             )
         )
         (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
+        curves = repro_matrix.with_other_groups(curves, out / "evals")
     summary = repro_matrix.summarise(curves, optimum)
     plots = [f"matrix_{g.split('/', 1)[1]}.png" for g in games]
     for g, name in zip(games, plots, strict=True):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from actors.envs.registry import env_name, is_map_file
 from cluster.errors import UsageError
+from cluster.repro import groups as repro_groups
 from cluster.repro import resume as repro_resume
 from cluster.repro.aggregate import REPS
 from cluster.repro.pairs import FanOutConfig
@@ -78,6 +79,42 @@ def add_run_options(m: argparse.ArgumentParser) -> None:
         f"(default {repro_resume.CHECKPOINT_EVERY:,}; 0: never); running the same command "
         "again continues unfinished pairs from there and skips finished ones",
     )
+
+
+def add_seed_group_option(m: argparse.ArgumentParser) -> None:
+    """--seed-group: one part of each pair's seeds, trained by this command."""
+    m.add_argument(
+        "--seed-group",
+        type=int,
+        default=0,
+        metavar="G",
+        help="train this command's --seeds as seed group G of each pair (0.."
+        f"{repro_groups.MAX_GROUP}, default 0), so that one pair's seeds can be split over "
+        "several runs, one after the other or at once, into the same --out: group G trains "
+        f"with run.seed + G*{repro_groups.STRIDE:,} (no two groups share a random stream; "
+        "a group too large to keep to its own seeds is refused) and keeps its own files "
+        "(OUT/evals/<env>__<algo>.g<G>.jsonl, OUT/resume/, OUT/pairs/; group 0's are the "
+        "names without .g<G>). The summary merges every group of a pair into one curve: "
+        "seeds in group order, at the evaluations every group has",
+    )
+
+
+def seed_group_overrides(args: argparse.Namespace, cfgs: list) -> list[str]:
+    """The overrides of --seed-group (run.seed of the group; none for group 0) after checking
+    that the group keeps to its own seeds in every pair's config `cfgs` (UsageError if not)."""
+    group = args.seed_group
+    if group and args.summarise_only:
+        raise UsageError(
+            "--summarise-only merges every seed group of each pair found in OUT/evals; "
+            "drop --seed-group"
+        )
+    bases = {c.run.seed for c in cfgs}
+    if len(bases) > 1:
+        raise UsageError(f"--seed-group: the pairs' configs set run.seed differently: {bases}")
+    for c in cfgs:
+        run = c.run
+        repro_groups.check(group, run.seed, args.seeds, run.num_envs, run.test_episodes)
+    return [f"run.seed={repro_groups.group_seed(group, bases.pop())}"] if group else []
 
 
 def fan_out_config(args: argparse.Namespace) -> FanOutConfig:

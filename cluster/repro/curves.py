@@ -23,7 +23,6 @@ Summary per (env, algo), win rates in [0, 1]:
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -34,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cluster.repro import groups as repro_groups
 from cluster.repro.fanout import run_pairs
 from cluster.repro.pairs import FanOutConfig, Pair, StatusLine
 from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
@@ -64,7 +64,9 @@ class Curve:
     """Every evaluation of one (algo, env) pair: t_env [K]; won and returns [K][seeds];
     learner diagnostics at each evaluation (means over seeds and over the updates since the
     previous evaluation; only keys the learner has); wall [K] seconds since the pair started;
-    commits: the code's commits it was trained at (two or more if it was resumed at another)."""
+    commits: the code's commits it was trained at (two or more if it was resumed at another);
+    groups: the seed groups it holds, [{group, seeds, evaluations}] (`cluster.repro.groups`;
+    empty in records made before groups existed: group 0)."""
 
     algo: str
     env: str
@@ -75,6 +77,7 @@ class Curve:
     learner: list[dict[str, float]] = field(default_factory=list)
     wall: list[float] = field(default_factory=list)
     commits: list[str] = field(default_factory=list)
+    groups: list[dict] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,7 @@ def run_pair(
     overrides: list[str],
     checkpoint: bool = False,
     resume: ResumeConfig | None = None,
+    group: int = 0,
     report: Callable[[str], None] | None = None,
 ) -> PairOutput:
     """Train `seeds` seeds of `algo` on `env` in one seed-batched trainer.
@@ -104,13 +108,15 @@ def run_pair(
             is gigabytes).
         resume: where the pair checkpoints every `resume.every` env steps and continues
             from (`cluster.repro.resume`); None: no checkpoints.
+        group: the pair's seed group (`cluster.repro.groups`; its run.seed is among
+            `overrides`).
         report: called with one JSON line per evaluation (the pair's evaluation log).
     """
     from cluster.config.train import load_train_config
     from cluster.launch.local import LocalTrainer
     from cluster.process import configure
 
-    with PairJournal(resume, Pair(algo, env), report) as journal:
+    with PairJournal(resume, Pair(algo, env, group), report) as journal:
         cfg = load_train_config(algo, env, [], overrides + journal.overrides())
         configure(cfg.run)  # the pair's torch threads (run.torch_threads) and seed
         trainer = LocalTrainer(cfg, n_ensemble=seeds)
@@ -142,7 +148,9 @@ def run_pair(
                 if f.is_file()
             )
     curve = curve_of(algo, env, journal.rows)
-    return PairOutput(replace(curve, wall_s=journal.wall_s, commits=journal.commits), files)
+    groups = [{"group": group, "seeds": seeds, "evaluations": len(journal.rows)}]
+    curve = replace(curve, wall_s=journal.wall_s, commits=journal.commits, groups=groups)
+    return PairOutput(curve, files)
 
 
 def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None:
@@ -161,21 +169,32 @@ def write_checkpoint(folder: Path, files: tuple[tuple[str, bytes], ...]) -> None
 def load_evals(
     log_dir: Path, algos: list[str], envs: list[str], until: int | None = None
 ) -> list[Curve]:
-    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped).
-    With `until`, each curve ends at its first evaluation at or past `until` env steps, so
-    that runs of different lengths are summarised at one budget."""
-    curves = []
-    for env in envs:
-        for algo in algos:
-            path = log_dir / f"{Pair(algo, env).key}.jsonl"
-            if not path.exists() or not path.read_text().strip():
-                continue
-            rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
-            if until is not None:
-                end = next((i for i, r in enumerate(rows) if r["t_env"] >= until), len(rows) - 1)
-                rows = rows[: end + 1]
-            curves.append(curve_of(algo, env, rows))
-    return curves
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped),
+    each pair's seed groups merged into one curve (`cluster.repro.groups.merge`). With
+    `until`, each curve ends at its first evaluation at or past `until` env steps, so that
+    runs of different lengths are summarised at one budget."""
+    curves = [load_pair(log_dir, algo, env, until) for env in envs for algo in algos]
+    return [c for c in curves if c is not None]
+
+
+def load_pair(log_dir: Path, algo: str, env: str, until: int | None = None) -> Curve | None:
+    """One pair's curve from the logs of all its seed groups (None without a log)."""
+    pair = Pair(algo, env)
+    loaded = repro_groups.load(log_dir, pair.key, pair.label, until)
+    if loaded is None:
+        return None
+    rows, info = loaded
+    return replace(curve_of(algo, env, rows), commits=info["commits"], groups=info["groups"])
+
+
+def with_other_groups(curves: list[Curve], log_dir: Path) -> list[Curve]:
+    """The curves a run trained, each replaced by the merge of all its pair's seed groups
+    (from their logs in `log_dir`) where other groups have logs there."""
+
+    def others(c: Curve) -> bool:
+        return repro_groups.others_logged(log_dir, Pair(c.algo, c.env).key, c.groups)
+
+    return [load_pair(log_dir, c.algo, c.env) if others(c) else c for c in curves]
 
 
 def curve_of(algo: str, env: str, rows: list[dict]) -> Curve:
@@ -231,14 +250,19 @@ def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
 
 
 def summarise(curves: list[Curve]) -> dict:
-    """{env: {algo: summarise_curve(...) + final return median and wall time}}."""
+    """{env: {algo: summarise_curve(...) + final return median, wall time, evaluations,
+    commits and the seed groups merged into the curve, [{group, seeds, evaluations}]}}."""
     out: dict = {}
     for c in curves:
         cell = summarise_curve(c.t_env, c.won)
         cell["median_return_last10"] = float(np.median(np.asarray(c.returns)[-LAST:].mean(0)))
         cell["t_env"] = int(c.t_env[-1])
+        cell["evaluations"] = len(c.t_env)
         cell["wall_s"] = round(c.wall_s, 1)
         cell["commits"] = c.commits
+        cell["groups"] = c.groups or [
+            {"group": 0, "seeds": len(c.won[0]), "evaluations": len(c.t_env)}
+        ]
         out.setdefault(c.env, {})[c.algo] = cell
     return out
 
@@ -319,21 +343,23 @@ def run(
     checkpoint_dir: Path | None = None,
     total_steps: int = 0,
     resume: ResumeConfig | None = None,
+    group: int = 0,
 ) -> list[Curve]:
-    """Every (algo, env) pair where `fan` says; curves in (env, algo) order. Each pair's
+    """Every (algo, env) pair where `fan` says, as seed group `group` (its run.seed among
+    `overrides`; `cluster.repro.groups`); curves in (env, algo) order. Each pair's
     evaluations go to log_dir/<env>__<algo>.jsonl as they happen and, with `checkpoint_dir`,
     its final checkpoint to checkpoint_dir/<env>__<algo>/ as it finishes. With
     `total_steps` (every pair's t_max together), a status line shows the env steps done and
     each pair's latest median win rate. With `resume` (and its output folder), pairs
     checkpoint, continue from their checkpoints and are skipped when already finished
     (`cluster.repro.resume`)."""
-    pairs = [Pair(a, g) for g in envs for a in algos]
+    pairs = [Pair(a, g, group) for g in envs for a in algos]
 
     def on_result(pair: Pair, out: PairOutput) -> None:
         if checkpoint_dir is not None:
             write_checkpoint(checkpoint_dir / pair.key, out.checkpoint)
 
-    args = (seeds, overrides, checkpoint_dir is not None, resume)
+    args = (seeds, overrides, checkpoint_dir is not None, resume, group)
     status = StatusLine(total_steps, "won", "win") if total_steps else None
     store = None
     if resume is not None and resume.out is not None:

@@ -8,7 +8,6 @@ matrix_<game>.png.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from actors.envs.registry import make_env
+from cluster.repro import groups as repro_groups
 from cluster.repro.fanout import run_pairs
 from cluster.repro.pairs import FanOutConfig, Pair, StatusLine
 from cluster.repro.resume import PairJournal, PairStore, ResumeConfig
@@ -31,7 +31,9 @@ ALGOS = ("iql", "vdn", "qmix", "qmix_ns", "rdn")
 class Curve:
     """Test return of every seed at every evaluation: t_env [K], returns [K, seeds]; for RDN,
     what its critic learned (cluster.inspect.rdn_diagnostics), one entry per seed; the code's
-    commits it was trained at (two or more if it was resumed at another)."""
+    commits it was trained at (two or more if it was resumed at another); the seed groups it
+    holds, [{group, seeds, evaluations}] (`cluster.repro.groups`; empty in records made
+    before groups existed: group 0)."""
 
     algo: str
     game: str
@@ -40,6 +42,7 @@ class Curve:
     wall_s: float
     rdn_diagnostics: list[dict] | None = None
     commits: list[str] = field(default_factory=list)
+    groups: list[dict] = field(default_factory=list)
 
 
 def run_pair(
@@ -48,16 +51,18 @@ def run_pair(
     seeds: int,
     overrides: list[str],
     resume: ResumeConfig | None = None,
+    group: int = 0,
     report: Callable[[str], None] | None = None,
 ) -> Curve:
     """Train `seeds` seeds of `algo` on `game` in one seed-batched trainer; `report` gets one
     JSON line per evaluation ({env, algo, t_env, returns [seeds], wall_s, commit}); `resume`:
-    where it checkpoints and continues from (`cluster.repro.resume`), None for nowhere."""
+    where it checkpoints and continues from (`cluster.repro.resume`), None for nowhere;
+    `group`: its seed group (`cluster.repro.groups`; its run.seed is among `overrides`)."""
     from cluster.config.train import load_train_config
     from cluster.launch.local import LocalTrainer
     from cluster.process import configure
 
-    with PairJournal(resume, Pair(algo, game), report) as journal:
+    with PairJournal(resume, Pair(algo, game, group), report) as journal:
         cfg = load_train_config(algo, game, [], overrides + journal.overrides())
         configure(cfg.run)  # the pair's torch threads (run.torch_threads) and seed
         trainer = LocalTrainer(cfg, n_ensemble=seeds)
@@ -78,28 +83,38 @@ def run_pair(
         diagnostics = diagnose(trainer.core.learner, game, cfg.env.args)
     rows = journal.rows
     t_env, returns = [r["t_env"] for r in rows], [r["returns"] for r in rows]
-    return Curve(algo, game, t_env, returns, journal.wall_s, diagnostics, journal.commits)
+    groups = [{"group": group, "seeds": seeds, "evaluations": len(rows)}]
+    return Curve(algo, game, t_env, returns, journal.wall_s, diagnostics, journal.commits, groups)
 
 
 def load_evals(log_dir: Path, algos: list[str], games: list[str]) -> list[Curve]:
-    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped;
-    no RDN diagnostics: those come from the trained learner, not the log)."""
-    curves = []
-    for game in games:
-        for algo in algos:
-            path = log_dir / f"{game.replace('/', '-')}__{algo}.jsonl"
-            rows = (
-                [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
-                if (path.exists())
-                else []
-            )
-            if rows:
-                t_env = [r["t_env"] for r in rows]
-                returns = [r["returns"] for r in rows]
-                commits = sorted({r["commit"] for r in rows if "commit" in r})
-                wall_s = float(rows[-1]["wall_s"])
-                curves.append(Curve(algo, game, t_env, returns, wall_s, None, commits))
-    return curves
+    """Curves rebuilt from the per-pair evaluation logs (pairs without a log are skipped),
+    each pair's seed groups merged into one curve (`cluster.repro.groups.merge`); no RDN
+    diagnostics: those come from the trained learner, not the log."""
+    curves = [load_pair(log_dir, algo, game) for game in games for algo in algos]
+    return [c for c in curves if c is not None]
+
+
+def load_pair(log_dir: Path, algo: str, game: str) -> Curve | None:
+    """One pair's curve from the logs of all its seed groups (None without a log)."""
+    pair = Pair(algo, game)
+    loaded = repro_groups.load(log_dir, pair.key, pair.label)
+    if loaded is None:
+        return None
+    rows, info = loaded
+    t_env, returns = [r["t_env"] for r in rows], [r["returns"] for r in rows]
+    wall_s = float(rows[-1]["wall_s"])
+    return Curve(algo, game, t_env, returns, wall_s, None, info["commits"], info["groups"])
+
+
+def with_other_groups(curves: list[Curve], log_dir: Path) -> list[Curve]:
+    """The curves a run trained, each replaced by the merge of all its pair's seed groups
+    (from their logs in `log_dir`, without RDN diagnostics) where other groups have logs."""
+
+    def others(c: Curve) -> bool:
+        return repro_groups.others_logged(log_dir, Pair(c.algo, c.game).key, c.groups)
+
+    return [load_pair(log_dir, c.algo, c.game) if others(c) else c for c in curves]
 
 
 def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
@@ -116,6 +131,7 @@ def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
             "final_returns": [float(x) for x in final],
             "wall_s": round(c.wall_s, 1),
             "commits": c.commits,
+            "groups": c.groups or [{"group": 0, "seeds": len(final), "evaluations": len(c.t_env)}],
         }
     return out
 
@@ -154,18 +170,20 @@ def run(
     log_dir: Path | None = None,
     total_steps: int = 0,
     resume: ResumeConfig | None = None,
+    group: int = 0,
 ) -> list[Curve]:
-    """Every (algo, game) pair where `fan` says; curves in (game, algo) order, evaluations in
+    """Every (algo, game) pair where `fan` says, as seed group `group` (its run.seed among
+    `overrides`; `cluster.repro.groups`); curves in (game, algo) order, evaluations in
     log_dir/<game>__<algo>.jsonl as they happen. With `total_steps` (every pair's t_max
     together), a status line shows the env steps done and each pair's latest median return.
     With `resume` (and its output folder), pairs checkpoint, continue from their checkpoints
     and are skipped when already finished (`cluster.repro.resume`)."""
-    pairs = [Pair(a, g) for g in games for a in algos]
+    pairs = [Pair(a, g, group) for g in games for a in algos]
     status = StatusLine(total_steps, "returns", "return") if total_steps else None
     store = None
     if resume is not None and resume.out is not None:
         store = PairStore(resume, lambda c: dict(c.__dict__), lambda d: Curve(**d))
-    args = (seeds, overrides, resume)
+    args = (seeds, overrides, resume, group)
     return run_pairs(run_pair, pairs, args, fan, log_dir, None, status, store)
 
 

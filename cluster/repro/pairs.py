@@ -25,20 +25,24 @@ POLL_S = 1.0  # how often the driver collects events while pairs run
 
 @dataclass(frozen=True)
 class Pair:
-    """One (algorithm, env) run of an experiment (all its seeds batched in one trainer)."""
+    """One (algorithm, env) run of an experiment (all its seeds batched in one trainer);
+    `group`: its seed group (`cluster.repro.groups`; 0 unless --seed-group says)."""
 
     algo: str
     env: str
+    group: int = 0
 
     @property
     def key(self) -> str:
-        """File stem of the pair's evaluation log: `<env with - for />__<algo>` (a map
-        file's absolute path without its leading /)."""
-        return f"{self.env.lstrip('/').replace('/', '-')}__{self.algo}"
+        """File stem of the pair's evaluation log, checkpoint folder and record:
+        `<env with - for />__<algo>` (a map file's absolute path without its leading /), then
+        `.g<group>` for a seed group other than 0."""
+        stem = f"{self.env.lstrip('/').replace('/', '-')}__{self.algo}"
+        return stem + (f".g{self.group}" if self.group else "")
 
     @property
     def label(self) -> str:
-        return f"{self.algo}@{self.env}"
+        return f"{self.algo}@{self.env}" + (f" (seed group {self.group})" if self.group else "")
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,7 @@ def _run(tmp: Path, pair: Pair, overrides: list[str], every: int, commit: str, s
     sink = _Sink(Collector([pair], tmp / "evals"), stop_at)
     report = Reporter(sink, pair)
     report.start()
-    out = curves.run_pair(pair.algo, pair.env, 2, overrides, False, resume, report)
+    out = curves.run_pair(pair.algo, pair.env, 2, overrides, False, resume, report=report)
     return out, sink
 
 
