@@ -86,8 +86,11 @@ def test_repro_matrix_summarise_only_on_the_committed_logs(tmp_path, capsys):
     # The committed summary's per-cell numbers are unchanged by the new entry; the committed
     # logs predate the per-line commit, so their cells list no commits.
     committed = json.loads((ROOT / "results" / "matrix" / "summary.json").read_text())
+    # Each cell also names its seed groups: the committed logs are group 0's.
     for algo in ("iql", "rdn"):
         assert all(cell["commits"] == [] for cell in summary[algo].values())
+        for cell in summary[algo].values():
+            assert cell.pop("groups") == [{"group": 0, "seeds": 8, "evaluations": 301}]
         assert summary[algo] == {
             g: {**c, "wall_s": summary[algo][g]["wall_s"], "commits": []}
             for g, c in committed[algo].items()
