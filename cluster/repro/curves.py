@@ -3,8 +3,9 @@ Figs. 5.10-5.13) and `credit repro smac` (the value family and RDN).
 
 Each (algorithm, env) pair is one seed-batched LocalTrainer (E = seeds); pairs run in a small
 process pool or as Ray tasks on a cluster (`cluster.repro.fanout`). Every evaluation is appended
-to `evals/<env>__<algo>.jsonl` as it happens (a long
-run that dies keeps what it measured, and `load_evals` rebuilds curves from those files); at
+to `evals/<env>__<algo>.jsonl` as it happens (`<env>__<algo>.g<G>.jsonl` for seed group
+G > 0, `cluster.repro.groups`; a long run that dies keeps what it measured, and `load_evals`
+rebuilds curves from those files, every seed group of a pair merged into one curve); at
 the end summary.json, curves.json and one <prefix>_<map>.png per env are written: test win rate
 and test return against env steps, win rate against wall time, and the learner diagnostics
 the experiment names.

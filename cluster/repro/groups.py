@@ -11,11 +11,11 @@ Random streams. A trainer with run.seed = S and E members (cluster/process.py,
 cluster/evaluation.py, cluster/launch/local.py) seeds torch's global generator (the
 networks) with S, the acting worker's generator with S and the evaluation worker's with
 S + 1; training env k (k < E * run.num_envs) with S + k and evaluation env k
-(k < E * run.test_episodes) with S + 10_000 + k; member m's replay table with S * 1000 + m. Group G trains with
-S = base + G * STRIDE (base: run.seed as configured, 0 unless `--set run.seed`), and a group
-is refused unless every seed it uses lies in its own window ([G * STRIDE, (G + 1) * STRIDE),
-times 1000 for the tables): so no two groups of one base ever share a seed, whatever their
-numbers of members.
+(k < E * run.test_episodes) with S + 10_000 + k; member m's replay table with S * 1000 + m.
+Group G trains with S = base + G * STRIDE (base: run.seed as configured, 0 unless
+`--set run.seed`), and a group is refused unless every seed it uses lies in its own window
+([G * STRIDE, (G + 1) * STRIDE), times 1000 for the tables): so no two groups of one base
+ever share a seed, whatever their numbers of members.
 
 Merging (`merge`): the groups' seeds are concatenated in group order at every evaluation all
 groups have, matched by their index (evaluation k of every group is its k-th, at about k

@@ -1,9 +1,9 @@
 """One (algorithm, env) pair of a `credit repro` experiment and how it reports: `Pair`, the
 run options (`FanOutConfig`), the events a pair's process sends (`PairEvent`, `Reporter`,
 `run_pair`) and the driver's `Collector`, which writes each evaluation line to
-OUT/evals/<env>__<algo>.jsonl as it arrives and logs each pair's start, restarts and end.
-Shared by the local pool (`cluster.repro.fanout`) and the Ray tasks
-(`cluster.repro.fanout_ray`)."""
+OUT/evals/<key>.jsonl (`Pair.key`: <env>__<algo>, then .g<G> for seed group G) as it
+arrives and logs each pair's start, restarts and end. Shared by the local pool
+(`cluster.repro.fanout`) and the Ray tasks (`cluster.repro.fanout_ray`)."""
 
 from __future__ import annotations
 

@@ -8,7 +8,8 @@ counters) and the pair's evaluation log so far, with the commit each part was tr
 pair keeps one checkpoint: the next is written beside it and replaces it, so while it is
 written the pair uses up to twice the disk of one; each checkpoint's size is logged. The
 finished pair removes its checkpoint and the driver records it in OUT/pairs/<key>.json
-(`PairStore`).
+(`PairStore`). A pair's seed group G > 0 (`cluster.repro.groups`) has its own of each:
+OUT/resume/<env>__<algo>.g<G>/ and OUT/pairs/<env>__<algo>.g<G>.json (`Pair.key`).
 
 Running the same command again skips the finished pairs (their curves come from the records)
 and continues every other pair from its checkpoint: with one worker and a fixed seed the
