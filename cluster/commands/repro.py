@@ -16,16 +16,6 @@ from types import ModuleType
 
 from actors.envs.registry import env_name
 from cluster.commands import add_command
-from cluster.commands.repro_options import (
-    add_run_options,
-    add_seed_group_option,
-    check_algos,
-    check_env_names,
-    custom_as_file,
-    fan_out_config,
-    resume_config,
-    seed_group_overrides,
-)
 from cluster.config.train import load_train_config
 from cluster.core import write_json
 from cluster.errors import UsageError
@@ -37,6 +27,16 @@ from cluster.repro import redundancy as repro_redundancy
 from cluster.repro import report as repro_report
 from cluster.repro import smac as repro_smac
 from cluster.repro.aggregate import curve_scores, matrix_scores, max_return
+from cluster.repro.options import (
+    add_run_options,
+    add_seed_group_option,
+    check_algos,
+    check_env_names,
+    custom_as_file,
+    fan_out_config,
+    resume_config,
+    seed_group_overrides,
+)
 
 log = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ import socket
 import pytest
 
 from cluster.cli import build_parser, main
-from cluster.commands.repro_options import fan_out_config
 from cluster.repro.fanout import run_pairs
+from cluster.repro.options import fan_out_config
 from cluster.repro.pairs import Collector, FanOutConfig, Pair, PairEvent, StatusLine
 
 COMMANDS = {
