@@ -37,6 +37,7 @@ from cluster.repro.options import (
     resume_config,
     seed_group_overrides,
 )
+from cluster.repro.verdict import Plan, describe
 
 log = logging.getLogger(__name__)
 
@@ -192,11 +193,11 @@ def cmd_curves(
     name: str,
     experiment: ModuleType,
     extra_envs: list[str] = (),
-    figures: Callable[[list, list[str], Path, dict], list[str]] | None = None,
+    figures: Callable[[list, list[str], Path, dict, Plan], list[str]] | None = None,
 ) -> int:
     """`credit repro emcac` / `smac` / `redundancy`: curves of every (algo, env) pair, then
     the per-env plots and, with `figures`, the experiment's own figures over every env
-    (which may add to the summary)."""
+    (which may add to the summary; the plan tells it which pairs were to run how far)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
     envs, sets = custom_as_file(envs, list(args.set))
@@ -213,6 +214,8 @@ def cmd_curves(
     # validates every (algo, env) config before any training starts
     cfgs = [load_train_config(a, g, [], overrides) for g in envs for a in algos]
     t_max = sum(c.run.t_max for c in cfgs)
+    keys = [(g, a) for g in envs for a in algos]
+    plan = Plan({k: c.run.t_max for k, c in zip(keys, cfgs, strict=True)}, args.bootstrap_reps)
     overrides += seed_group_overrides(args, cfgs)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
@@ -247,7 +250,7 @@ def cmd_curves(
         plots.append(f"{experiment.PLOT_PREFIX}_{env_name(g)}.png")
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
     if figures is not None:
-        plots += figures(curves, envs, out, summary)
+        plots += figures(curves, envs, out, summary, plan)
     best = {g: max_return(g, load_train_config(algos[0], g, [], overrides).env.args) for g in envs}
     scores = curve_scores(curves, best, repro_curves.LAST)
     _write_report(args, f"credit repro {name}", scores, summary, plots)
@@ -262,6 +265,8 @@ def cmd_curves(
                 f"{v['steps_to_50_smoothed']}/{v['steps_to_80_smoothed']}/"
                 f"{v['steps_to_95_smoothed']}  wall {v['wall_s']:.0f} s"
             )
+    if "verdict" in summary:
+        print("\n".join(describe(summary["verdict"])))
     print(f"results in {out}: summary.json, curves.json, report.html, evals/, " + ", ".join(plots))
     return 0
 

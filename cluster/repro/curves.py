@@ -228,6 +228,11 @@ def trailing_mean(values: np.ndarray, window: int) -> np.ndarray:
     return np.convolve(values, np.ones(window) / window, mode="valid")
 
 
+def final_per_seed(values: list[list[float]]) -> np.ndarray:
+    """Each seed's final value: its mean over the last LAST evaluations ([K][seeds] -> [seeds])."""
+    return np.asarray(values, dtype=float)[-LAST:].mean(axis=0)
+
+
 def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
     """Table 5.2's numbers and the steps to 50% / 80% / 95% for one pair (module docstring).
 
@@ -236,7 +241,7 @@ def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
         won: [K][seeds] test win rates.
     """
     w = np.asarray(won, dtype=float)
-    per_seed = w[-LAST:].mean(axis=0)
+    per_seed = final_per_seed(w)
     median_curve = np.median(w, axis=1)
     t = np.asarray(t_env)
     smooth = trailing_mean(median_curve, SMOOTH)

@@ -16,10 +16,14 @@ whose units are drawn every episode has no such number and stays off that chart)
 * redundancy_final.png (not in the dissertation): the final win rate (each seed's mean over its last
   10 evaluations; median and 25-75% over seeds) against the number of allied zerglings, a
   line through the Table 5.1 maps, open squares for the generated ones and open diamonds
-  for map files; beside it the final return the same way.
+  for map files; beside it the final return the same way;
+* redundancy_final_vs_zerglings.png: the verdict's view of the same axis (`cluster.repro.verdict`),
+  finished pairs only: every seed a point, the mean with its bootstrap interval, the fitted
+  slope per algorithm.
 
 Maps are ordered from the most redundant zerglings to the fewest, as in the dissertation's figures.
-`summary.json` gets a "redundancy" entry with every number these figures draw.
+`summary.json` gets a "redundancy" entry with every number these figures draw, and a
+"verdict" entry with the dissertation's three statements (`cluster.repro.verdict`).
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ from actors.envs.skirmish.maps import BANE_VARIANT, BANE_VARIANT_MAX, builtin_ma
 from actors.envs.skirmish.spec import MapSpec
 from cluster.errors import UsageError
 from cluster.repro import smac as repro_smac
-from cluster.repro.curves import LAST, Curve
+from cluster.repro import verdict as repro_verdict
+from cluster.repro.curves import LAST, Curve, final_per_seed
 
 ENVS = (
     "skirmish/bane_vs_bane",
@@ -141,7 +146,7 @@ def final_stats(curves: list[Curve], envs: list[str]) -> dict:
             cell["map_file"].append(is_map_file(env))
             cell["zerglings"].append(zerglings_of(env))
             for prefix, values in (("", c.won), ("return_", c.returns)):
-                per_seed = np.asarray(values, dtype=float)[-LAST:].mean(axis=0)
+                per_seed = final_per_seed(values)
                 for key, q in LINE_STATS.items():
                     v = round(float(np.percentile(per_seed, q)), 4)
                     cell.setdefault(prefix + key, []).append(v)
@@ -150,9 +155,17 @@ def final_stats(curves: list[Curve], envs: list[str]) -> dict:
     return out
 
 
-def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict) -> list[str]:
-    """Draw the five figures into `out` and add their numbers to `summary["redundancy"]`;
-    returns the file names."""
+def write_figures(
+    curves: list[Curve],
+    envs: list[str],
+    out: Path,
+    summary: dict,
+    plan: repro_verdict.Plan | None = None,
+) -> list[str]:
+    """Draw the six figures into `out`, add their numbers to `summary["redundancy"]` and the
+    dissertation's statements to `summary["verdict"]` (`cluster.repro.verdict`, from the
+    pairs that finished `plan`; without one, every curve counts as finished); returns the
+    file names."""
     envs = ordered([g for g in envs if any(c.env == g for c in curves)])
     summary["redundancy"] = {
         "zerglings": {g: zerglings_of(g) for g in envs},
@@ -169,6 +182,10 @@ def write_figures(curves: list[Curve], envs: list[str], out: Path, summary: dict
     enemies = {enemy_of(g) for g in envs}
     enemy = enemies.pop() if len(enemies) == 1 else None
     _plot_final(summary["redundancy"]["final"], enemy, out / files[-1])
+    plan = plan or repro_verdict.Plan.of_curves(curves)
+    summary["verdict"] = repro_verdict.verdict(curves, plan, ENVS)
+    files.append(repro_verdict.FIGURE)
+    repro_verdict.plot(summary["verdict"], enemy, out / files[-1])
     return files
 
 

@@ -39,7 +39,8 @@ def test_figures_and_their_numbers(tmp_path):
     files = write_figures(
         curves, ["skirmish/bane_no_z", "skirmish/bane_vs_bane"], tmp_path, summary
     )
-    assert files == [f"redundancy_{k}.png" for k in ("median", "variance", "p75", "p25", "final")]
+    kinds = ("median", "variance", "p75", "p25", "final", "final_vs_zerglings")
+    assert files == [f"redundancy_{k}.png" for k in kinds]
     for f in files:
         assert (tmp_path / f).stat().st_size > 10_000
     red = summary["redundancy"]
@@ -118,7 +119,8 @@ def test_tiny_redundancy_run_writes_every_figure_summary_and_checkpoints(tmp_pat
     red = summary["redundancy"]
     assert list(red["curves"]) == ["skirmish/bane_z1", "skirmish/bane_no_z"]
     assert red["final"]["rdn"]["zerglings"] == [1, 0]
-    for name in ("median", "variance", "p75", "p25", "final", "bane_z1", "bane_no_z"):
+    kinds = ("median", "variance", "p75", "p25", "final", "final_vs_zerglings")
+    for name in (*kinds, "bane_z1", "bane_no_z"):
         assert (out / f"redundancy_{name}.png").stat().st_size > 0
     assert (out / "checkpoints" / "skirmish-bane_z1__rdn" / "learner.pt").exists()
     assert not (out / "checkpoints" / "skirmish-bane_z1__rdn" / "buffer").exists()  # no replay
