@@ -42,6 +42,14 @@ SLOPES = ("rdn", "vdn", "qmix")  # the statements' algorithms: always given a sl
 NOSTATE = ("qmix_ns", "qmix")  # QMIX-nostate against QMIX
 NOSTATE_ENVS = ("skirmish/bane_med", "skirmish/bane_no_z")
 FIGURE = "redundancy_final_vs_zerglings.png"
+RULES = {  # statement -> (yes, no) from its interval [lo, hi]; neither: "undecided"
+    "flat": (
+        lambda lo, hi: lo >= -TOLERANCE and hi <= TOLERANCE,
+        lambda lo, hi: hi < -TOLERANCE or lo > TOLERANCE,
+    ),
+    "falls": (lambda lo, hi: hi < 0, lambda lo, hi: lo >= 0),
+    "beats": (lambda lo, hi: lo > 0, lambda lo, hi: hi <= 0),
+}
 
 
 @dataclass(frozen=True)
@@ -107,7 +115,7 @@ def _pairs(curves: list[Curve], plan: Plan) -> tuple[dict, dict]:
 def _missing(pairs: list[tuple[str, str]], final: dict, why: dict) -> list[dict]:
     """{env, algo, why} of each pair in `pairs` that has not finished."""
     return [
-        {"env": g, "algo": a, "why": why.get((g, a), "not in this run (--envs, --algos)")}
+        {"env": g, "algo": a, "why": why.get((g, a), "not in this run's --envs or --algos")}
         for g, a in pairs
         if a not in final.get(g, {})
     ]
@@ -155,9 +163,8 @@ def _mean(x, axis=-1):
 
 
 def _final(c: Curve, zerglings: int | None, plan: Plan) -> dict:
-    per_seed = final_per_seed(c.won)
-    mean, ci = bootstrap_interval((per_seed,), _mean, plan)
-    seeds = [_r(v) for v in per_seed]
+    seeds = [_r(v) for v in final_per_seed(c.won)]  # as recorded: intervals recompute from them
+    mean, ci = bootstrap_interval((seeds,), _mean, plan)
     return {"zerglings": zerglings, "per_seed": seeds, "mean": mean, "ci": ci}
 
 
@@ -204,18 +211,8 @@ def _nostate(env: str, final: dict, why: dict, plan: Plan) -> dict:
     diff, ci = bootstrap_interval((ns, q), _diff, plan)
     m = [np.asarray(s, dtype=float)[:, None] for s in (ns, q)]
     p, p_ci = aggregate.interval(m, metrics.probability_of_improvement, plan.reps, plan.seed)
-    out = {"qmix_ns": ns, "qmix": q, "difference": diff, "ci": ci, "beats": ci[0] > 0}
+    out = {"qmix_ns": ns, "qmix": q, "difference": diff, "ci": ci, "beats": RULES["beats"][0](*ci)}
     return {**out, "p_qmix_ns_better": _r(p), "p_ci": [_r(v) for v in p_ci]}
-
-
-RULES = {  # statement -> (yes, no) from its interval [lo, hi]; neither: "undecided"
-    "flat": (
-        lambda lo, hi: lo >= -TOLERANCE and hi <= TOLERANCE,
-        lambda lo, hi: hi < -TOLERANCE or lo > TOLERANCE,
-    ),
-    "falls": (lambda lo, hi: hi < 0, lambda lo, hi: lo >= 0),
-    "beats": (lambda lo, hi: lo > 0, lambda lo, hi: hi <= 0),
-}
 
 
 def _statements(slopes: dict, nostate: dict) -> dict:
