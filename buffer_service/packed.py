@@ -40,7 +40,6 @@ from buffer_service.episode import (
 )
 
 PACKING = 1  # the layout version written by `PackedEpisode.pack`; the wire records it
-ONE_BITS = np.float32(1.0).view(np.uint32)
 # The Python objects of one stored episode, counted into `nbytes`: the dataclass, its array's
 # header, its counts, and the buffer's bookkeeping (dicts of keys, refs, dedup); tracemalloc
 # measured 868 bytes an episode over 2,000 inserted into a BufferState.
@@ -116,18 +115,9 @@ class FloatCounts:
             raise EpisodeError(f"packed {name}: inconsistent counts {self}")
 
 
-def encode_floats(a: np.ndarray) -> tuple[FloatCounts, np.ndarray, list[np.ndarray]]:
-    """(counts, values, [live, nonzero, ones] bit sections) of float32 rows `a` [M, F]."""
-    bits = np.ascontiguousarray(a, np.float32).view(np.uint32)
-    live = bits.any(axis=1)
-    rows = bits[live]
-    nz = rows != 0
-    nzvals = rows[nz]
-    ones = nzvals == ONE_BITS
-    values = nzvals[~ones].view(np.float32)
-    counts = FloatCounts(a.shape[0], a.shape[1], int(rows.shape[0]), nzvals.size, values.size)
-    live_bits = np.packbits(live[: counts.flagged_rows])
-    return counts, values, [live_bits, np.packbits(nz), np.packbits(ones)]
+def _uint32_rows(a: np.ndarray) -> np.ndarray:
+    """float rows `a` [M, F] as contiguous uint32 bits (a view when already float32)."""
+    return np.ascontiguousarray(a, np.float32).view(np.uint32)
 
 
 def decode_floats(c: FloatCounts, values: np.ndarray, sections: list[np.ndarray], out) -> None:
@@ -140,6 +130,28 @@ def decode_floats(c: FloatCounts, values: np.ndarray, sections: list[np.ndarray]
     block = np.zeros(c.live * c.features, np.float32)
     block[nz] = vals
     out[live] = block.reshape(c.live, c.features)
+
+
+def section_layout(
+    t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts
+) -> dict[str, tuple[int, int]]:
+    """name -> (offset, bytes) of every section of a packed episode's buffer."""
+    n, a = dims[0], dims[3]
+    action_bytes = 1 if a <= 256 else 4
+    sizes = [
+        ("obs_values", 4 * oc.values),
+        ("state_values", 4 * sc.values),
+        ("reward", 4 * t),
+        ("actions", action_bytes * t * n),
+        *zip(("obs_live", "obs_nonzero", "obs_ones"), oc.bit_bytes(), strict=True),
+        *zip(("state_live", "state_nonzero", "state_ones"), sc.bit_bytes(), strict=True),
+        ("avail", _bits((t + 1) * n * a)),
+    ]
+    out, pos = {}, 0
+    for name, size in sizes:
+        out[name] = (pos, size)
+        pos += size
+    return out
 
 
 @dataclass(frozen=True)
@@ -178,22 +190,7 @@ class PackedEpisode:
     def layout(self) -> dict[str, tuple[int, int]]:
         """name -> (offset, bytes) of every section of `data` (computed on each call: a
         cached copy would cost every stored episode a kilobyte)."""
-        t, (n, _, _, a) = self.length, self.dims
-        oc, sc = self.obs_counts, self.state_counts
-        sizes = [
-            ("obs_values", 4 * oc.values),
-            ("state_values", 4 * sc.values),
-            ("reward", 4 * t),
-            ("actions", self.action_dtype.itemsize * t * n),
-            *zip(("obs_live", "obs_nonzero", "obs_ones"), oc.bit_bytes(), strict=True),
-            *zip(("state_live", "state_nonzero", "state_ones"), sc.bit_bytes(), strict=True),
-            ("avail", _bits((t + 1) * n * a)),
-        ]
-        out, pos = {}, 0
-        for name, size in sizes:
-            out[name] = (pos, size)
-            pos += size
-        return out
+        return section_layout(self.length, self.dims, self.obs_counts, self.state_counts)
 
     def _view(self, name: str, dtype=np.uint8, layout: dict | None = None) -> np.ndarray:
         off, size = (layout or self.layout)[name]
@@ -228,23 +225,32 @@ class PackedEpisode:
         """
         if isinstance(ep, PackedEpisode):
             return ep if state or not ep.has_state else ep.without_state()
-        t = ep.length
+        from buffer_service import pack_kernels as kernels  # numba: only where episodes are packed
+
+        t, (n, o, s, a) = ep.length, kernels.episode_dims(ep)
         obs, st = ep.obs, ep.state if state else ep.state[:, :0]
-        n, o, s, a = obs.shape[1], obs.shape[2], st.shape[1], ep.avail_actions.shape[2]
-        if np.any(ep.avail_actions > 1):
-            raise EpisodeError("field 'avail_actions' holds values other than 0 and 1")
-        if np.any(ep.terminated[:-1]):
-            raise EpisodeError("field 'terminated' is set before the last transition")
-        if not np.all(ep.filled):
-            raise EpisodeError("field 'filled' must be all true in a stored episode")
-        if ep.actions.size and not 0 <= int(ep.actions.min()) <= int(ep.actions.max()) < a:
-            raise EpisodeError(f"field 'actions' has values outside 0..{a - 1}")
-        oc, ov, obits = encode_floats(obs.reshape(-1, o))
-        sc, sv, sbits = encode_floats(st)
-        actions = ep.actions.astype(np.uint8 if a <= 256 else np.dtype("<i4"))
-        parts = [ov, sv, np.asarray(ep.reward, np.float32), actions, *obits, *sbits]
-        parts.append(np.packbits(ep.avail_actions.reshape(-1)))
-        data = joined([np.ascontiguousarray(p).reshape(-1).view(np.uint8) for p in parts])
+        s = s if state else 0
+        obits = _uint32_rows(obs.reshape(-1, o))
+        sbits = _uint32_rows(st)
+        lo, zo, vo, ls, zs, vs = kernels.counts(obits, sbits)
+        oc, sc = FloatCounts(obits.shape[0], o, lo, zo, vo), FloatCounts(t + 1, s, ls, zs, vs)
+        lay = section_layout(t, (n, o, s, a), oc, sc)
+        offsets = np.array([*(off for off, _ in lay.values()), sum(lay["avail"])], np.int64)
+        data = stored_buffer(int(offsets[-1]))
+        code = kernels.fill(
+            obits,
+            sbits,
+            np.ascontiguousarray(ep.reward, np.float32).reshape(-1),
+            np.ascontiguousarray(ep.actions, np.int64).reshape(-1),
+            np.ascontiguousarray(ep.avail_actions, np.uint8).reshape(-1),
+            np.ascontiguousarray(ep.terminated, np.bool_).reshape(-1),
+            np.ascontiguousarray(ep.filled, np.bool_).reshape(-1),
+            a,
+            data,
+            offsets,
+        )
+        if code != kernels.OK:
+            raise EpisodeError(kernels.ERRORS[code].format(a - 1))
         return cls(
             length=t,
             dims=(n, o, s, a),

@@ -57,6 +57,40 @@ def test_batches_of_packed_episodes_are_bit_identical_to_dense_ones():
     _same(EpisodeBatch.from_episodes([eps[0], packed[1]]), EpisodeBatch.from_episodes(eps[:2]))
 
 
+def _numpy_reference_pack(ep: Episode, state: bool = True) -> bytes:
+    """The numpy encoding `PackedEpisode.pack` used before its numba kernels: the layout of
+    the module docstring, built from numpy passes and joined."""
+
+    def floats(a):
+        bits = np.ascontiguousarray(a, np.float32).view(np.uint32)
+        live = bits.any(axis=1)
+        nz = bits[live] != 0
+        nzvals = bits[live][nz]
+        ones = nzvals == np.float32(1.0).view(np.uint32)
+        flags = live if a.shape[1] else live[:0]
+        return nzvals[~ones], [np.packbits(flags), np.packbits(nz), np.packbits(ones)]
+
+    st = ep.state if state else ep.state[:, :0]
+    ov, obits = floats(ep.obs.reshape(-1, ep.obs.shape[2]))
+    sv, sbits = floats(st)
+    a = ep.avail_actions.shape[2]
+    actions = ep.actions.astype(np.uint8 if a <= 256 else np.dtype("<i4"))
+    parts = [ov, sv, np.asarray(ep.reward, np.float32), actions, *obits, *sbits]
+    parts.append(np.packbits(ep.avail_actions.reshape(-1)))
+    return b"".join(np.ascontiguousarray(p).tobytes() for p in parts)
+
+
+@pytest.mark.parametrize("state", [True, False])
+def test_pack_writes_the_same_bytes_as_the_numpy_encoding_it_replaced(state):
+    many = EpisodeSchema(n_agents=2, obs_dim=5, state_dim=3, n_actions=300, max_t=20)
+    eps = [smac_like(i, t) for i, t in enumerate([1, 2, 7, 17, 60])]
+    eps += [smac_like(9, 13, many), make_episode(0, 1, 5, BIG)]  # int32 actions; all-zero obs
+    all_dead = smac_like(10, 9)
+    eps.append(dataclasses.replace(all_dead, obs=np.zeros_like(all_dead.obs)))
+    for ep in eps:
+        assert PackedEpisode.pack(ep, state).data.tobytes() == _numpy_reference_pack(ep, state)
+
+
 def test_without_the_state_everything_else_is_unchanged():
     eps = [smac_like(i, t) for i, t in enumerate([5, 9])]
     bare = [PackedEpisode.pack(ep, state=False) for ep in eps]
@@ -99,6 +133,29 @@ def test_what_cannot_be_packed_or_does_not_fit_the_schema_is_refused():
     other = EpisodeSchema(n_agents=4, obs_dim=5, state_dim=7, n_actions=4, max_t=10)
     with pytest.raises(EpisodeError, match="shape"):
         PackedEpisode.pack(ep).validate(other)
+
+
+@pytest.mark.parametrize(
+    "field, shape",
+    [
+        ("obs", (5, SCHEMA.n_agents + 1, SCHEMA.obs_dim)),  # more agents than avail_actions
+        ("obs", (5, SCHEMA.n_agents * SCHEMA.obs_dim)),
+        ("state", (6, SCHEMA.state_dim)),
+        ("avail_actions", (5, SCHEMA.n_agents - 1, SCHEMA.n_actions)),
+        ("actions", (4, SCHEMA.n_agents + 2)),
+        ("reward", (3,)),
+        ("terminated", (5,)),
+        ("filled", (4, 1)),
+    ],
+)
+def test_arrays_whose_shapes_disagree_are_refused_before_packing(field, shape):
+    # an episode from the wire (protocol 1) is packed by the server: nothing may be
+    # written by its shapes until they agree with each other
+    ep = make_episode(0, 0, t=4)
+    bad = np.zeros(shape, getattr(ep, field).dtype)
+    with pytest.raises(EpisodeError, match="shape") as e:
+        PackedEpisode.pack(dataclasses.replace(ep, **{field: bad}))
+    assert field in str(e.value) or "avail_actions" in str(e.value)  # the first disagreeing
 
 
 def _corrupt(p: PackedEpisode, section: str, value, dtype=np.uint8) -> PackedEpisode:

@@ -1,0 +1,190 @@
+"""Numba kernels that write an episode into `buffer_service.packed`'s layout.
+
+`PackedEpisode.pack` runs once per episode in every actor (and in the service benchmark's
+client threads, which share one interpreter lock). Built from numpy calls, the encoding took
+about forty calls and their temporaries per episode, and for small episodes (3m: 5,490
+observation values) the cost was the calls themselves. Here it is two compiled calls that
+release the lock: one counts what the float arrays hold, the other checks the episode and
+writes every section straight into its buffer. They produce the same bytes as the numpy
+encoding they replace; `tests/buffer_service/test_packed.py` checks that against a numpy
+reference.
+
+Bit sections use numpy's packbits order (the first bit is a byte's most significant).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from buffer_service.episode import EPISODE_ARRAYS, Episode, EpisodeError
+
+ONE_BITS = np.uint32(np.float32(1.0).view(np.uint32))
+# fill()'s return codes
+OK, BAD_AVAIL, EARLY_TERMINATED, NOT_FILLED, BAD_ACTION = 0, 1, 2, 3, 4
+
+
+def episode_dims(ep: Episode) -> tuple[int, int, int, int]:
+    """(N, O, S, A) of `ep`, after checking that its arrays' shapes agree with each other
+    (the kernels index by them; an episode from the wire may say anything)."""
+    arrays = {name: getattr(ep, name) for name in EPISODE_ARRAYS}
+    for name, arr in arrays.items():
+        if not isinstance(arr, np.ndarray):
+            raise EpisodeError(f"field {name!r} is {type(arr).__name__}, not a numpy array")
+    axes = {"obs": 3, "state": 2, "avail_actions": 3, "actions": 2}
+    for name, k in axes.items():
+        if arrays[name].ndim != k:
+            raise EpisodeError(f"field {name!r} has shape {arrays[name].shape}: needs {k} axes")
+    t, (n, o), s, a = (
+        ep.actions.shape[0],
+        ep.obs.shape[1:],
+        ep.state.shape[1],
+        ep.avail_actions.shape[2],
+    )
+    shapes = {
+        "obs": (t + 1, n, o),
+        "state": (t + 1, s),
+        "avail_actions": (t + 1, n, a),
+        "actions": (t, n),
+        "reward": (t,),
+        "terminated": (t,),
+        "filled": (t,),
+    }
+    for name, shape in shapes.items():
+        if arrays[name].shape != shape:
+            raise EpisodeError(f"field {name!r} has shape {arrays[name].shape}, expected {shape}")
+    if t < 1 or min(n, o, a) < 1:
+        raise EpisodeError(f"episode of length {t} with dims {(n, o, s, a)} cannot be packed")
+    return n, o, s, a
+
+
+ERRORS = {
+    BAD_AVAIL: "field 'avail_actions' holds values other than 0 and 1",
+    EARLY_TERMINATED: "field 'terminated' is set before the last transition",
+    NOT_FILLED: "field 'filled' must be all true in a stored episode",
+    BAD_ACTION: "field 'actions' has values outside 0..{}",
+}
+
+
+@njit(cache=True, nogil=True)
+def _float_counts(bits: np.ndarray) -> tuple[int, int, int]:
+    live = 0
+    nonzero = 0
+    ones = 0
+    for i in range(bits.shape[0]):
+        row = 0
+        for j in range(bits.shape[1]):
+            b = bits[i, j]
+            if b != 0:
+                row += 1
+                if b == ONE_BITS:
+                    ones += 1
+        if row:
+            live += 1
+            nonzero += row
+    return live, nonzero, nonzero - ones
+
+
+@njit(cache=True, nogil=True)
+def counts(obs: np.ndarray, state: np.ndarray) -> tuple[int, int, int, int, int, int]:
+    """(live rows, non-zero entries, stored values) of the uint32 rows `obs` [M, O], then
+    of `state` [T+1, S]: entries are non-zero bitwise (-0.0 counts), and stored values
+    exclude the entries exactly 1.0."""
+    lo, zo, vo = _float_counts(obs)
+    ls, zs, vs = _float_counts(state)
+    return lo, zo, vo, ls, zs, vs
+
+
+@njit(cache=True, nogil=True)
+def _set_bit(out: np.ndarray, off: int, i: int) -> None:
+    out[off + (i >> 3)] |= np.uint8(0x80 >> (i & 7))
+
+
+@njit(cache=True, nogil=True)
+def _push(data: np.ndarray, acc: int, n: int, pos: int, bit: bool) -> tuple[int, int, int]:
+    """Append `bit` to the byte gathered in `acc` (n bits so far), writing it at `pos` when
+    full; returns the new (acc, n, pos)."""
+    acc = (acc << 1) | bit
+    n += 1
+    if n == 8:
+        data[pos] = acc
+        return 0, 0, pos + 1
+    return acc, n, pos
+
+
+@njit(cache=True, nogil=True)
+def _encode(bits: np.ndarray, vals: np.ndarray, data: np.ndarray, live: int, nz: int, ones: int):
+    """Write uint32 rows `bits` [M, F]: the stored values' bits into `vals` (uint32), and
+    into `data` at its bit sections' byte offsets a live bit per row (when F > 0), a bit per
+    entry of a live row and a bit per non-zero entry (the live section must be zeroed)."""
+    v = 0
+    nz_acc, nz_n, nz_pos = 0, 0, nz
+    one_acc, one_n, one_pos = 0, 0, ones
+    for i in range(bits.shape[0]):
+        alive = False
+        for j in range(bits.shape[1]):
+            if bits[i, j] != 0:
+                alive = True
+                break
+        if not alive:
+            continue
+        _set_bit(data, live, i)
+        for j in range(bits.shape[1]):
+            b = bits[i, j]
+            nz_acc, nz_n, nz_pos = _push(data, nz_acc, nz_n, nz_pos, b != 0)
+            if b != 0:
+                one_acc, one_n, one_pos = _push(data, one_acc, one_n, one_pos, b == ONE_BITS)
+                if b != ONE_BITS:
+                    vals[v] = b
+                    v += 1
+    if nz_n:
+        data[nz_pos] = nz_acc << (8 - nz_n)
+    if one_n:
+        data[one_pos] = one_acc << (8 - one_n)
+
+
+@njit(cache=True, nogil=True)
+def fill(
+    obs: np.ndarray,
+    state: np.ndarray,
+    reward: np.ndarray,
+    actions: np.ndarray,
+    avail: np.ndarray,
+    terminated: np.ndarray,
+    filled: np.ndarray,
+    n_actions: int,
+    data: np.ndarray,
+    offsets: np.ndarray,
+) -> int:
+    """Check the episode, then write it into `data` (uint8) at `offsets` (int64: obs
+    values, state values, reward, actions, obs live/nonzero/ones, state live/nonzero/ones,
+    avail, end). Returns OK, or the first failed check's code with nothing written.
+
+    reward: float32 [T]; actions: int64 [T*N]; avail, terminated, filled: flat uint8/bool.
+    """
+    for i in range(avail.size):
+        if avail[i] > 1:
+            return BAD_AVAIL
+    for i in range(terminated.size - 1):
+        if terminated[i]:
+            return EARLY_TERMINATED
+    for i in range(filled.size):
+        if not filled[i]:
+            return NOT_FILLED
+    for i in range(actions.size):
+        if actions[i] < 0 or actions[i] >= n_actions:
+            return BAD_ACTION
+    data[offsets[4] : offsets[11]] = 0  # every bit section, avail included
+    obs_vals = data[offsets[0] : offsets[1]].view(np.uint32)
+    state_vals = data[offsets[1] : offsets[2]].view(np.uint32)
+    _encode(obs, obs_vals, data, offsets[4], offsets[5], offsets[6])
+    _encode(state, state_vals, data, offsets[7], offsets[8], offsets[9])
+    data[offsets[2] : offsets[3]].view(np.float32)[:] = reward
+    if n_actions > 256:
+        data[offsets[3] : offsets[4]].view(np.int32)[:] = actions
+    else:
+        data[offsets[3] : offsets[4]][:] = actions
+    for i in range(avail.size):
+        if avail[i]:
+            _set_bit(data, offsets[10], i)
+    return OK
