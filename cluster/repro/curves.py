@@ -228,6 +228,12 @@ def trailing_mean(values: np.ndarray, window: int) -> np.ndarray:
     return np.convolve(values, np.ones(window) / window, mode="valid")
 
 
+def last_means(won: list[list[float]]) -> np.ndarray:
+    """Each seed's mean test win rate over its last LAST evaluations: [K][seeds] -> [seeds]
+    (over all K when K < LAST)."""
+    return np.asarray(won, dtype=float)[-LAST:].mean(axis=0)
+
+
 def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
     """Table 5.2's numbers and the steps to 50% / 80% / 95% for one pair (module docstring).
 
@@ -236,7 +242,7 @@ def summarise_curve(t_env: list[int], won: list[list[float]]) -> dict:
         won: [K][seeds] test win rates.
     """
     w = np.asarray(won, dtype=float)
-    per_seed = w[-LAST:].mean(axis=0)
+    per_seed = last_means(won)
     median_curve = np.median(w, axis=1)
     t = np.asarray(t_env)
     smooth = trailing_mean(median_curve, SMOOTH)
