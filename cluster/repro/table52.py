@@ -18,7 +18,8 @@ with a bootstrap 95% interval [lo, hi] over both cells' seeds (resampled indepen
 A comparison with a cell not run is missing; one with a cell of a single seed (no interval)
 is inconclusive. A claim does not hold if any of its comparisons does not; else it is missing
 (not yet answerable: the cells are named) if any is missing; else inconclusive if any is;
-else it holds.
+else it holds. Cells under MIN_STEPS env steps (still running, or cut short) count as they
+are, and each claim names those it used (under_min_steps).
 """
 
 from __future__ import annotations
@@ -201,8 +202,21 @@ def claims(cells: dict, reps: int, seed: int) -> list[dict]:
             tests.append({"map": m, "a": a, "b": b, "relation": relation, **got})
         pairs = {(t["map"], x) for t in tests for x in (t["a"], t["b"])}
         missing = sorted(f"{m} {NAMES[x]}" for m, x in pairs if cells[m][x] is None)
+        short = sorted(
+            f"{m} {NAMES[x]}"
+            for m, x in pairs
+            if cells[m][x] is not None and cells[m][x]["t_env"] < MIN_STEPS
+        )
         verdict = claim_verdict([t["verdict"] for t in tests])
-        out.append({"claim": spec["claim"], "verdict": verdict, "missing": missing, "tests": tests})
+        out.append(
+            {
+                "claim": spec["claim"],
+                "verdict": verdict,
+                "missing": missing,
+                "under_min_steps": short,
+                "tests": tests,
+            }
+        )
     return out
 
 

@@ -61,10 +61,16 @@ def _runs(t: dict) -> list[str]:
 
 def _verdict(claim: dict) -> str:
     if claim["verdict"] == "missing":
-        return "not yet answerable: not run " + ", ".join(claim["missing"])
-    if claim["verdict"] == "inconclusive":
-        return "not yet answerable: an interval straddles the bound"
-    return claim["verdict"]
+        text = "not yet answerable: not run " + ", ".join(claim["missing"])
+    elif claim["verdict"] == "inconclusive":
+        text = "not yet answerable: an interval straddles the bound"
+    else:
+        text = claim["verdict"]
+    if claim["under_min_steps"]:
+        text += (
+            f" (under {MIN_STEPS / 1e6:.0f}M steps: " + ", ".join(claim["under_min_steps"]) + ")"
+        )
+    return text
 
 
 def _test_text(x: dict) -> str:

@@ -84,7 +84,7 @@ def test_seed_groups_merge_into_one_cell(tmp_path):
 
 
 def _cell(per_seed: list[float]) -> dict:
-    return {"per_seed": per_seed}
+    return {"per_seed": per_seed, "t_env": 2_000_000}
 
 
 @pytest.mark.parametrize(
@@ -178,14 +178,21 @@ def test_the_dissertations_numbers_and_their_impossible_cells():
 def test_markdown_shows_ours_beside_theirs_and_cells_not_run(tmp_path):
     write_log(tmp_path, "emcac", "skirmish/3s5z", [[0.5, 0.7, 0.9]] * 10, kl=[0.25] * 10)
     write_log(tmp_path, "cac", "skirmish/3s5z", [[0.1, 0.2]] * 120)
-    md = render(table52.table52(load_evals(tmp_path, ["emcac", "cac"], ["skirmish/3s5z"]), 50, 0))
+    t = table52.table52(load_evals(tmp_path, ["emcac", "cac"], ["skirmish/3s5z"]), 50, 0)
+    md = render(t)
     row = next(x for x in md.splitlines() if x.startswith("| 3s5z |")).split(" | ")
     assert row[1].startswith("15/15 [10–20] vs 15/5")  # 1.19M steps: no "*"
     assert row[3].startswith("70/70 [") and row[3].endswith("]* vs 93/93")  # 90k steps
     assert row[2] == "— not run (vs 48/63)"
     assert "| 3s5z | EM-CAC | 3 | 50, 70, 90 | 60–80 | 90k | 10 | 0.250 |" in md
     assert "| MMM2 | — not run (vs 29/35) |" in md
-    assert "not yet answerable: not run 3s5z E-CAC, MMM2 CAC" in md
+    chain = next(x for x in md.splitlines() if x.startswith("| EM-CAC >= E-CAC >= CAC"))
+    assert "| not yet answerable: not run 3s5z E-CAC, MMM2 CAC, MMM2 E-CAC, MMM2 EM-CAC " in chain
+    assert chain.endswith("(under 1M steps: 3s5z EM-CAC) | — |")  # no comparison has both
+    # COMA is not run anywhere: its claim names every cell but 3s5z's CAC and EM-CAC
+    coma = next(c for c in t["claims"] if c["claim"] == "COMA lowest on every map")
+    assert len(coma["missing"]) == 18 and "3s5z CAC" not in coma["missing"]
+    assert coma["under_min_steps"] == ["3s5z EM-CAC"]
 
 
 @pytest.mark.slow  # 6 s at load 4 (two cores busy), most of it imports and the plots
