@@ -145,19 +145,31 @@ def cell(c: Curve, reps: int, seed: int) -> dict:
     }
 
 
+def table_map(env: str) -> str | None:
+    """The Table 5.2 map an env id is (module docstring), or None."""
+    name = None if is_map_file(env) else env_name(env)
+    return name if name in MAPS else None
+
+
+def check_envs(envs: list[str]) -> None:
+    """Raise UsageError if two of `envs` are one Table 5.2 map (its cell would be ambiguous);
+    `credit repro emcac` checks its --envs before anything trains."""
+    seen: dict[str, str] = {}
+    for g in envs:
+        m = table_map(g)
+        if m in seen:
+            raise UsageError(
+                f"Table 5.2: {seen[m]} and {g} are both {m}; run or summarise one of them "
+                "per --out (--envs)"
+            )
+        if m is not None:
+            seen[m] = g
+
+
 def cells_of(curves: list[Curve], reps: int, seed: int) -> dict[str, dict[str, dict | None]]:
     """{map: {algo: cell, or None when not run}} over MAPS x ALGOS."""
-    found: dict[tuple[str, str], Curve] = {}
-    for c in curves:
-        m = None if is_map_file(c.env) else env_name(c.env)
-        if m not in MAPS or c.algo not in ALGOS:
-            continue
-        if (m, c.algo) in found:
-            raise UsageError(
-                f"Table 5.2: {c.algo} on {m} twice ({found[m, c.algo].env} and {c.env}); "
-                "summarise one of them (--envs)"
-            )
-        found[m, c.algo] = c
+    check_envs(list(dict.fromkeys(c.env for c in curves)))
+    found = {(table_map(c.env), c.algo): c for c in curves}
     return {
         m: {a: cell(found[m, a], reps, seed) if (m, a) in found else None for a in ALGOS}
         for m in MAPS

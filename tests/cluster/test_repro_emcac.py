@@ -159,6 +159,7 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
         (["--algos", "cac,dqn"], "unknown algorithm 'dqn'"),
         (["--envs", "skirmish/nope"], "unknown env"),
         (["--seeds", "0"], "--seeds must be >= 1"),
+        (["--envs", "skirmish/3s5z,smac/3s5z"], "skirmish/3s5z and smac/3s5z are both 3s5z"),
     ],
 )
 def test_bad_input_exits_2(tmp_path, capsys, argv, message):
