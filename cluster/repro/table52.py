@@ -248,12 +248,20 @@ def table52(curves: list[Curve], reps: int, seed: int) -> dict:
             "reps": reps,
             "seed": seed,
             "confidence": CONFIDENCE,
+            "recompute": "scipy.stats.bootstrap(samples, statistic, n_resamples=reps, "
+            "confidence_level=confidence, method='percentile', paired=False, vectorized=True, "
+            "rng=numpy.random.default_rng(seed)); a cell's ci_mean: samples (per_seed,), "
+            "statistic the mean; a comparison's interval: samples (A's per_seed, B's), "
+            "statistic mean(A) - mean(B)",
         },
         "rules": {
             "ge": "A >= B holds if the interval of mean(A) - mean(B) has lo >= 0, does not hold "
             "if hi < 0, else inconclusive",
             "close": f"A close to B holds if that interval lies in [-{CLOSE}, {CLOSE}], does not "
-            f"hold if it lies wholly outside it, else inconclusive",
+            "hold if it lies wholly outside it, else inconclusive",
+            "cells": "a comparison with a cell not run is missing; with a cell of one seed (no "
+            f"interval) inconclusive; cells under {MIN_STEPS} env steps count as they are "
+            "(each claim's under_min_steps names them)",
             "claim": "does not hold if any comparison does not; else missing if any cell is not "
             "run; else inconclusive if any comparison is; else holds",
         },
