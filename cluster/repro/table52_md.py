@@ -21,6 +21,12 @@ def steps(t: int) -> str:
     return f"{t / 1e6:.2f}M" if t >= 100_000 else f"{t / 1e3:.0f}k"
 
 
+def short_commit(commit: str) -> str:
+    """A commit as the evaluation log records it, shortened: 7 hex digits, and "-dirty"
+    where tracked files were modified."""
+    return commit[:7] + ("-dirty" if commit.endswith("-dirty") else "")
+
+
 def cell_text(c: dict | None, theirs: str) -> str:
     """'ours median/mean [interval] vs theirs', or '— not run (vs theirs)'."""
     if c is None:
@@ -51,10 +57,11 @@ def _runs(t: dict) -> list[str]:
             if c is None:
                 continue
             kl = "—" if c["kl_masked_fraction"] is None else f"{c['kl_masked_fraction']:.3f}"
+            commits = ", ".join(short_commit(x) for x in c["commits"])
             lines.append(
                 f"| {m} | {NAMES[a]} | {c['seeds']} | {', '.join(pct(v) for v in c['per_seed'])} "
                 f"| {pct(c['iqr'][0])}–{pct(c['iqr'][1])} | {steps(c['t_env'])} "
-                f"| {c['evaluations']} | {kl} | {', '.join(x[:7] for x in c['commits'])} |"
+                f"| {c['evaluations']} | {kl} | {commits} |"
             )
     return lines
 

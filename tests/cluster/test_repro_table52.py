@@ -176,15 +176,17 @@ def test_the_dissertations_numbers_and_their_impossible_cells():
 
 
 def test_markdown_shows_ours_beside_theirs_and_cells_not_run(tmp_path):
+    dirty = "e" * 40 + "-dirty"
     write_log(tmp_path, "emcac", "skirmish/3s5z", [[0.5, 0.7, 0.9]] * 10, kl=[0.25] * 10)
-    write_log(tmp_path, "cac", "skirmish/3s5z", [[0.1, 0.2]] * 120)
+    write_log(tmp_path, "cac", "skirmish/3s5z", [[0.1, 0.2]] * 120, commit=dirty)
     t = table52.table52(load_evals(tmp_path, ["emcac", "cac"], ["skirmish/3s5z"]), 50, 0)
     md = render(t)
     row = next(x for x in md.splitlines() if x.startswith("| 3s5z |")).split(" | ")
     assert row[1].startswith("15/15 [10–20] vs 15/5")  # 1.19M steps: no "*"
     assert row[3].startswith("70/70 [") and row[3].endswith("]* vs 93/93")  # 90k steps
     assert row[2] == "— not run (vs 48/63)"
-    assert "| 3s5z | EM-CAC | 3 | 50, 70, 90 | 60–80 | 90k | 10 | 0.250 |" in md
+    assert "| 3s5z | EM-CAC | 3 | 50, 70, 90 | 60–80 | 90k | 10 | 0.250 | aaaaaaa |" in md
+    assert "| 3s5z | CAC | 2 | 10, 20 | 12–18 | 1.19M | 120 | — | eeeeeee-dirty |" in md
     assert "| MMM2 | — not run (vs 29/35) |" in md
     chain = next(x for x in md.splitlines() if x.startswith("| EM-CAC >= E-CAC >= CAC"))
     assert "| not yet answerable: not run 3s5z E-CAC, MMM2 CAC, MMM2 E-CAC, MMM2 EM-CAC " in chain
