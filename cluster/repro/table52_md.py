@@ -104,7 +104,8 @@ def render(t: dict) -> str:
         "--summarise-only: do not edit -->",
         f"Test win rate (%) over the last 10 evaluations: ours, the median/mean over seeds of "
         f"each seed's mean [percentile bootstrap {bs['confidence']:.0%} interval of the mean, "
-        f"{bs['reps']} draws, seed {bs['seed']}], vs {t['source']}, median/mean as printed "
+        f"{bs['reps']} draws, seed {bs['seed']}; with 3 seeds or fewer, the seeds' range], vs "
+        f"{t['source']}, median/mean as printed "
         f"({t['dissertation_steps'] / 1e6:.0f}M env steps). —: not run; *: fewer than "
         f"{MIN_STEPS / 1e6:.0f}M env steps.",
         "",
