@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from cluster.repro.curves import Curve
+from cluster.repro.curves import LAST, Curve
 from cluster.repro.table52 import ALGOS, CLOSE, MIN_STEPS, NAMES, table52
 
 FILE = "table52.md"
@@ -102,7 +102,7 @@ def render(t: dict) -> str:
     head = [
         "<!-- written by `credit repro emcac` (cluster/repro/table52_md.py); rebuilt by "
         "--summarise-only: do not edit -->",
-        f"Test win rate (%) over the last 10 evaluations: ours, the median/mean over seeds of "
+        f"Test win rate (%) over the last {LAST} evaluations: ours, the median/mean over seeds of "
         f"each seed's mean [percentile bootstrap {bs['confidence']:.0%} interval of the mean, "
         f"{bs['reps']} draws, seed {bs['seed']}; with 3 seeds or fewer, the seeds' range], vs "
         f"{t['source']}, median/mean as printed "
