@@ -26,7 +26,9 @@ from cluster.repro import matrix as repro_matrix
 from cluster.repro import redundancy as repro_redundancy
 from cluster.repro import report as repro_report
 from cluster.repro import smac as repro_smac
-from cluster.repro.aggregate import curve_scores, matrix_scores, max_return
+from cluster.repro import table52 as repro_table52
+from cluster.repro import table52_md as repro_table52_md
+from cluster.repro.aggregate import SEED, curve_scores, matrix_scores, max_return
 from cluster.repro.options import (
     add_run_options,
     add_seed_group_option,
@@ -93,14 +95,17 @@ def _run(run: Callable[[], list]) -> list:
 
 
 def register_emcac(rsub: argparse._SubParsersAction) -> None:
-    _register_curves(
+    m = _register_curves(
         rsub,
         "emcac",
         "Seed Table 5.2: train CAC, E-CAC, EM-CAC, COMA and QMIX on skirmish maps; writes "
-        "OUT/evals/*.jsonl as it runs, then summary.json, curves.json and one PNG per map.",
+        "OUT/evals/*.jsonl as it runs, then summary.json (with the table52 entry: ours beside "
+        "the dissertation's Table 5.2 and its ordering claims), table52.md, curves.json and "
+        "one PNG per map.",
         repro_emcac,
         default_seeds=8,
     )
+    m.set_defaults(func=cmd_emcac)
     _register_curves(
         rsub,
         "smac",
@@ -134,6 +139,12 @@ def register_emcac(rsub: argparse._SubParsersAction) -> None:
             figures=repro_redundancy.write_figures,
         )
     )
+
+
+def cmd_emcac(args: argparse.Namespace) -> int:
+    """`credit repro emcac`: the curves, and Table 5.2 beside the dissertation's."""
+    repro_table52.check_envs([g for g in args.envs.split(",") if g])
+    return cmd_curves(args, "emcac", repro_emcac, tables=repro_table52_md.write)
 
 
 def _register_curves(
@@ -194,10 +205,12 @@ def cmd_curves(
     experiment: ModuleType,
     extra_envs: list[str] = (),
     figures: Callable[[list, list[str], Path, dict, Plan], list[str]] | None = None,
+    tables: Callable[[list, Path, dict, int, int], list[str]] | None = None,
 ) -> int:
     """`credit repro emcac` / `smac` / `redundancy`: curves of every (algo, env) pair, then
     the per-env plots and, with `figures`, the experiment's own figures over every env
-    (which may add to the summary; the plan tells it which pairs were to run how far)."""
+    (which may add to the summary; the plan tells it which pairs were to run how far); with
+    `tables`, the experiment's own tables (added to the summary and written into OUT)."""
     algos = [a for a in args.algos.split(",") if a]
     envs = [g for g in args.envs.split(",") if g] + [g for g in extra_envs if g]
     envs, sets = custom_as_file(envs, list(args.set))
@@ -251,6 +264,7 @@ def cmd_curves(
         repro_curves.plot(curves, g, out / plots[-1], experiment.DIAGNOSTICS)
     if figures is not None:
         plots += figures(curves, envs, out, summary, plan)
+    written = [] if tables is None else tables(curves, out, summary, args.bootstrap_reps, SEED)
     best = {g: max_return(g, load_train_config(algos[0], g, [], overrides).env.args) for g in envs}
     scores = curve_scores(curves, best, repro_curves.LAST)
     _write_report(args, f"credit repro {name}", scores, summary, plots)
@@ -267,7 +281,8 @@ def cmd_curves(
             )
     if "verdict" in summary:
         print("\n".join(describe(summary["verdict"])))
-    print(f"results in {out}: summary.json, curves.json, report.html, evals/, " + ", ".join(plots))
+    files = ["summary.json", *written, "curves.json", "report.html", "evals/", *plots]
+    print(f"results in {out}: " + ", ".join(files))
     return 0
 
 

@@ -119,7 +119,11 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
     )
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary) == {"skirmish/3m", "aggregate"}
+    assert set(summary) == {"skirmish/3m", "aggregate", "table52"}
+    # 3m is not one of Table 5.2's maps: every cell not run, every claim missing
+    assert all(v is None for row in summary["table52"]["cells"].values() for v in row.values())
+    assert {c["verdict"] for c in summary["table52"]["claims"]} == {"missing"}
+    assert "— not run (vs 62/65)" in (out / "table52.md").read_text()
     assert set(summary["skirmish/3m"]) == {"cac", "emcac"}
     poi = summary["aggregate"]["metrics"]["win_rate"]["probability_of_improvement"]
     assert list(poi) == ["cac > emcac"] and 0.0 <= poi["cac > emcac"]["p"] <= 1.0
@@ -146,6 +150,7 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
             if k != "wall_s":
                 assert again["skirmish/3m"][algo][k] == v, (algo, k)
     assert again["aggregate"] == json.loads(before)["aggregate"]  # seeded: the same draws
+    assert again["table52"] == json.loads(before)["table52"]
 
 
 @pytest.mark.parametrize(
@@ -154,6 +159,7 @@ def test_tiny_ablation_writes_summary_runs_and_plots(tmp_path, capsys):
         (["--algos", "cac,dqn"], "unknown algorithm 'dqn'"),
         (["--envs", "skirmish/nope"], "unknown env"),
         (["--seeds", "0"], "--seeds must be >= 1"),
+        (["--envs", "skirmish/3s5z,smac/3s5z"], "skirmish/3s5z and smac/3s5z are both 3s5z"),
     ],
 )
 def test_bad_input_exits_2(tmp_path, capsys, argv, message):
