@@ -1,4 +1,4 @@
-"""Numba kernels that write an episode into `buffer_service.packed`'s layout.
+"""Numba kernels that write an episode into `buffer_service.packed`'s layout and read it back.
 
 `PackedEpisode.pack` runs once per episode in every actor (and in the service benchmark's
 client threads, which share one interpreter lock). Built from numpy calls, the encoding took
@@ -7,7 +7,9 @@ observation values) the cost was the calls themselves. Here it is two compiled c
 release the lock: one counts what the float arrays hold, the other checks the episode and
 writes every section straight into its buffer. They produce the same bytes as the numpy
 encoding they replace; `tests/buffer_service/test_packed.py` checks that against a numpy
-reference.
+reference. `decode` reads an episode straight into a batch's arrays (one call per episode,
+where numpy took about fifteen; the batch is bit-identical to one made from the dense
+episodes, which the same tests check).
 
 Bit sections use numpy's packbits order (the first bit is a byte's most significant).
 """
@@ -188,3 +190,74 @@ def fill(
         if avail[i]:
             _set_bit(data, offsets[10], i)
     return OK
+
+
+@njit(cache=True, nogil=True)
+def _bit(data: np.ndarray, off: int, i: int) -> bool:
+    return (data[off + (i >> 3)] >> (7 - (i & 7))) & 1 == 1
+
+
+@njit(cache=True, nogil=True)
+def _decode(data: np.ndarray, vals: np.ndarray, sections: np.ndarray, out: np.ndarray) -> bool:
+    """Write packed rows into `out` (uint32 [M, F], zero-filled) from `vals` and the bit
+    sections at byte offsets `sections` (live, nonzero, ones, end; contiguous). False when
+    the bits ask for more values or bits than the buffer holds (a corrupt episode)."""
+    live, nz, ones, end = sections[0], sections[1], sections[2], sections[3]
+    v = 0
+    k = 0
+    z = 0
+    for i in range(out.shape[0]):
+        if out.shape[1] == 0:
+            break
+        if (i >> 3) >= nz - live:
+            return False
+        if not _bit(data, live, i):
+            continue
+        for j in range(out.shape[1]):
+            if (k >> 3) >= ones - nz:
+                return False
+            if _bit(data, nz, k):
+                if (z >> 3) >= end - ones:
+                    return False
+                if _bit(data, ones, z):
+                    out[i, j] = ONE_BITS
+                else:
+                    if v >= vals.size:
+                        return False
+                    out[i, j] = vals[v]
+                    v += 1
+                z += 1
+            k += 1
+    return True
+
+
+@njit(cache=True, nogil=True)
+def decode(
+    data: np.ndarray,
+    offsets: np.ndarray,
+    obs: np.ndarray,
+    state: np.ndarray,
+    reward: np.ndarray,
+    actions: np.ndarray,
+    avail: np.ndarray,
+    wide_actions: bool,
+) -> bool:
+    """Decode an episode's buffer (`fill`'s layout, at `offsets`) into zero-filled outputs:
+    obs uint32 [(T+1)*N, O], state uint32 [T+1, S], reward float32 [T], actions int64 [T*N],
+    avail uint8 [(T+1)*N*A]. False when the buffer is inconsistent with its counts."""
+    obs_vals = data[offsets[0] : offsets[1]].view(np.uint32)
+    state_vals = data[offsets[1] : offsets[2]].view(np.uint32)
+    if not _decode(data, obs_vals, offsets[4:8], obs):
+        return False
+    if not _decode(data, state_vals, offsets[7:11], state):
+        return False
+    reward[:] = data[offsets[2] : offsets[3]].view(np.float32)
+    if wide_actions:
+        actions[:] = data[offsets[3] : offsets[4]].view(np.int32)
+    else:
+        actions[:] = data[offsets[3] : offsets[4]]
+    if (avail.size + 7) >> 3 != offsets[11] - offsets[10]:
+        return False
+    for i in range(avail.size):
+        avail[i] = _bit(data, offsets[10], i)
+    return True

@@ -120,38 +120,45 @@ def _uint32_rows(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, np.float32).view(np.uint32)
 
 
-def decode_floats(c: FloatCounts, values: np.ndarray, sections: list[np.ndarray], out) -> None:
-    """Write the packed rows into `out` [M, F] float32, which must hold zeros."""
-    live_b, nz_b, ones_b = sections
-    live = np.unpackbits(live_b, count=c.rows).view(np.bool_)
-    nz = np.unpackbits(nz_b, count=c.live * c.features).view(np.bool_)
-    vals = np.ones(c.nonzero, np.float32)
-    vals[~np.unpackbits(ones_b, count=c.nonzero).view(np.bool_)] = values
-    block = np.zeros(c.live * c.features, np.float32)
-    block[nz] = vals
-    out[live] = block.reshape(c.live, c.features)
+def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts):
+    """The start offsets of the `SECTIONS`, then the buffer's end (the kernels' form of a
+    layout)."""
+    n, a = dims[0], dims[3]
+    sizes = (
+        4 * oc.values,
+        4 * sc.values,
+        4 * t,
+        (1 if a <= 256 else 4) * t * n,
+        *oc.bit_bytes(),
+        *sc.bit_bytes(),
+        _bits((t + 1) * n * a),
+    )
+    out = np.zeros(len(sizes) + 1, np.int64)
+    np.cumsum(sizes, out=out[1:])
+    return out
+
+
+SECTIONS = (
+    "obs_values",
+    "state_values",
+    "reward",
+    "actions",
+    "obs_live",
+    "obs_nonzero",
+    "obs_ones",
+    "state_live",
+    "state_nonzero",
+    "state_ones",
+    "avail",
+)
 
 
 def section_layout(
     t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts
 ) -> dict[str, tuple[int, int]]:
     """name -> (offset, bytes) of every section of a packed episode's buffer."""
-    n, a = dims[0], dims[3]
-    action_bytes = 1 if a <= 256 else 4
-    sizes = [
-        ("obs_values", 4 * oc.values),
-        ("state_values", 4 * sc.values),
-        ("reward", 4 * t),
-        ("actions", action_bytes * t * n),
-        *zip(("obs_live", "obs_nonzero", "obs_ones"), oc.bit_bytes(), strict=True),
-        *zip(("state_live", "state_nonzero", "state_ones"), sc.bit_bytes(), strict=True),
-        ("avail", _bits((t + 1) * n * a)),
-    ]
-    out, pos = {}, 0
-    for name, size in sizes:
-        out[name] = (pos, size)
-        pos += size
-    return out
+    off = _offsets(t, dims, oc, sc).tolist()
+    return {name: (off[i], off[i + 1] - off[i]) for i, name in enumerate(SECTIONS)}
 
 
 @dataclass(frozen=True)
@@ -234,8 +241,7 @@ class PackedEpisode:
         sbits = _uint32_rows(st)
         lo, zo, vo, ls, zs, vs = kernels.counts(obits, sbits)
         oc, sc = FloatCounts(obits.shape[0], o, lo, zo, vo), FloatCounts(t + 1, s, ls, zs, vs)
-        lay = section_layout(t, (n, o, s, a), oc, sc)
-        offsets = np.array([*(off for off, _ in lay.values()), sum(lay["avail"])], np.int64)
+        offsets = _offsets(t, (n, o, s, a), oc, sc)
         data = stored_buffer(int(offsets[-1]))
         code = kernels.fill(
             obits,
@@ -372,22 +378,21 @@ class PackedEpisode:
     # -- decoding -------------------------------------------------------------------------
     def write_into(self, out: dict[str, np.ndarray], i: int) -> None:
         """Decode into row `i` of a batch's zero-filled arrays (obs [B, T'+1, N, O], ...)."""
-        t, (n, o, s, a), lay = self.length, self.dims, self.layout
+        from buffer_service import pack_kernels as kernels  # numba: only where decoded
 
-        def view(name: str, dtype=np.uint8) -> np.ndarray:
-            return self._view(name, dtype, lay)
-
-        for name, c, dst in (
-            ("obs", self.obs_counts, out["obs"][i, : t + 1].reshape(-1, o)),
-            ("state", self.state_counts, out["state"][i, : t + 1] if s else None),
-        ):
-            if dst is not None:
-                bits = [view(f"{name}_{k}") for k in ("live", "nonzero", "ones")]
-                decode_floats(c, view(f"{name}_values", np.float32), bits, dst)
-        avail = np.unpackbits(view("avail"), count=(t + 1) * n * a)
-        out["avail_actions"][i, : t + 1] = avail.reshape(t + 1, n, a)
-        out["actions"][i, :t] = view("actions", self.action_dtype).reshape(t, n)
-        out["reward"][i, :t] = view("reward", np.float32)
+        t, (_, o, s, a) = self.length, self.dims
+        ok = kernels.decode(
+            self.data,
+            _offsets(t, self.dims, self.obs_counts, self.state_counts),
+            out["obs"][i, : t + 1].reshape(-1, o).view(np.uint32),
+            out["state"][i, : t + 1, :s].view(np.uint32),
+            out["reward"][i, :t],
+            out["actions"][i, :t].reshape(-1),
+            out["avail_actions"][i, : t + 1].reshape(-1),
+            a > 256,
+        )
+        if not ok:
+            raise EpisodeError(f"packed episode {self.key}: its bits disagree with its counts")
         out["terminated"][i, t - 1] = self.terminated_last
         out["filled"][i, :t] = True
 

@@ -186,6 +186,19 @@ def test_packed_checks_refuse_what_the_dense_checks_refuse(section, value, dtype
             check()
 
 
+def test_decoding_bits_that_disagree_with_their_counts_is_refused_not_read_past():
+    # check_layout refuses such an episode on every way in; the decoder checks again
+    p = PackedEpisode.pack(smac_like(3, 20))
+    lay = p.layout
+    for section in ("obs_nonzero", "obs_live", "state_nonzero"):  # (every state row is live)
+        data = p.data.copy()
+        off, size = lay[section]
+        data[off : off + size] = 0xFF
+        bad = dataclasses.replace(p, data=data)
+        with pytest.raises(EpisodeError, match="disagree"):
+            bad.unpack()
+
+
 def test_packed_length_and_layout_bits_are_checked():
     p = PackedEpisode.pack(smac_like(4, 60))
     with pytest.raises(EpisodeError, match=r"length 60 outside 1\.\.59"):
