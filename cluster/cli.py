@@ -4,26 +4,9 @@ exposes `register(subparsers)`; the list below is the whole registry of commands
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
-
-from actors.envs.base import EnvError
-from cluster.commands import bench as bench_cmd
-from cluster.commands import buffer as buffer_cmd
-from cluster.commands import cluster as cluster_cmd
-from cluster.commands import dashboard as dashboard_cmd
-from cluster.commands import demo as demo_cmd
-from cluster.commands import env as env_cmd
-from cluster.commands import inspect as inspect_cmd
-from cluster.commands import metrics as metrics_cmd
-from cluster.commands import report as report_cmd
-from cluster.commands import repro as repro_cmd
-from cluster.commands import sweep as sweep_cmd
-from cluster.commands import train as train_cmd
-from cluster.config.schema import ConfigError
-from cluster.errors import UsageError
-from cluster.launch.ray_cluster import ClusterError
-from learner.common import NonFiniteLossError
 
 log = logging.getLogger("credit")
 
@@ -37,33 +20,61 @@ DESCRIPTION = (
     "$CREDIT_STATE_DIR when that is set."
 )
 
-COMMANDS = [
-    demo_cmd,
-    train_cmd,
-    repro_cmd,
-    report_cmd,
-    sweep_cmd,
-    env_cmd,
-    inspect_cmd,
-    bench_cmd,
-    buffer_cmd,
-    cluster_cmd,
-    metrics_cmd,
-    dashboard_cmd,
-]
+# cluster/commands/<name>.py, in `credit --help`'s order. A command's module is imported only
+# when it is run (or for the full help), so `credit buffer serve` does not load torch or numba.
+COMMANDS = (
+    "demo",
+    "train",
+    "repro",
+    "report",
+    "sweep",
+    "env",
+    "inspect",
+    "bench",
+    "buffer",
+    "cluster",
+    "metrics",
+    "dashboard",
+)
+# (module, class, exit status) of the errors `main` reports in one line; a class is looked up
+# only when its module is loaded, for an exception of it can come from nowhere else.
+ERRORS = (
+    ("cluster.config.schema", "ConfigError", 2),
+    ("actors.envs.base", "EnvError", 2),
+    ("cluster.errors", "UsageError", 2),
+    ("learner.common", "NonFiniteLossError", 3),
+    ("cluster.launch.ray_cluster", "ClusterError", 1),  # e.g. a repro pair lost too often
+)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """`credit`'s parser with every command, or with only the command `only`."""
     parser = argparse.ArgumentParser(prog="credit", description=DESCRIPTION)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in COMMANDS:
-        module.register(sub)
+    for name in COMMANDS if only is None else (only,):
+        importlib.import_module(f"cluster.commands.{name}").register(sub)
     return parser
 
 
+def _command(argv: list[str]) -> str | None:
+    """The command `argv` runs, when it names one (the first word that is not an option)."""
+    word = next((w for w in argv if not w.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def _status(e: BaseException) -> int | None:
+    """`main`'s exit status for an error it reports in one line; None for any other."""
+    for module, cls, status in ERRORS:
+        loaded = sys.modules.get(module)
+        if loaded is not None and isinstance(e, getattr(loaded, cls)):
+            return status
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command(argv))
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -72,18 +83,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         return int(args.func(args) or 0)
-    except (ConfigError, EnvError, UsageError) as e:
-        print(f"credit: error: {e}", file=sys.stderr)
-        return 2
-    except NonFiniteLossError as e:
-        print(f"credit: error: {e}", file=sys.stderr)
-        return 3
-    except ClusterError as e:  # e.g. a repro pair lost more often than it may be retried
-        print(f"credit: error: {e}", file=sys.stderr)
-        return 1
     except KeyboardInterrupt:
         print("credit: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:
+        status = _status(e)
+        if status is None:
+            raise
+        print(f"credit: error: {e}", file=sys.stderr)
+        return status
 
 
 if __name__ == "__main__":
