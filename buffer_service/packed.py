@@ -237,6 +237,9 @@ class PackedEpisode:
         t, (n, o, s, a) = ep.length, kernels.episode_dims(ep)
         obs, st = ep.obs, ep.state if state else ep.state[:, :0]
         s = s if state else 0
+        avail = ep.avail_actions
+        if avail.dtype not in (np.uint8, np.bool_) and np.any((avail < 0) | (avail > 1)):
+            raise EpisodeError(kernels.ERRORS[kernels.BAD_AVAIL])  # before a cast could wrap
         obits = _uint32_rows(obs.reshape(-1, o))
         sbits = _uint32_rows(st)
         lo, zo, vo, ls, zs, vs = kernels.counts(obits, sbits)
@@ -248,7 +251,7 @@ class PackedEpisode:
             sbits,
             np.ascontiguousarray(ep.reward, np.float32).reshape(-1),
             np.ascontiguousarray(ep.actions, np.int64).reshape(-1),
-            np.ascontiguousarray(ep.avail_actions, np.uint8).reshape(-1),
+            np.ascontiguousarray(avail, np.uint8).reshape(-1),
             np.ascontiguousarray(ep.terminated, np.bool_).reshape(-1),
             np.ascontiguousarray(ep.filled, np.bool_).reshape(-1),
             a,

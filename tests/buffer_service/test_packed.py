@@ -126,6 +126,9 @@ def test_what_cannot_be_packed_or_does_not_fit_the_schema_is_refused():
         PackedEpisode.pack(dataclasses.replace(ep, terminated=early))
     with pytest.raises(EpisodeError, match="avail_actions"):
         PackedEpisode.pack(dataclasses.replace(ep, avail_actions=ep.avail_actions * 2))
+    wraps = ep.avail_actions.astype(np.int64) * 256  # 0 once cast to uint8
+    with pytest.raises(EpisodeError, match="avail_actions"):
+        PackedEpisode.pack(dataclasses.replace(ep, avail_actions=wraps))
     nan = ep.obs.copy()
     nan[1, 1, 1] = np.nan
     with pytest.raises(EpisodeError, match="NaN"):
