@@ -40,6 +40,31 @@ LABELS = {"win_rate": "final win rate", "normalised_return": "final return / max
 Scores = dict[str, dict[str, dict[str, list[float]]]]
 
 
+def percentile_interval(samples, statistic, reps: int = REPS, seed: int = SEED) -> list[float]:
+    """The CONFIDENCE percentile bootstrap interval of `statistic(*samples, axis=-1)`, each
+    sample resampled on its own (`scipy.stats.bootstrap`, a numpy generator seeded `seed`).
+    The one bootstrap of the Table 5.1 verdict and of Table 5.2."""
+    from scipy import stats
+
+    res = stats.bootstrap(
+        tuple(np.asarray(x, dtype=float) for x in samples),
+        statistic,
+        n_resamples=reps,
+        confidence_level=CONFIDENCE,
+        method="percentile",
+        rng=np.random.default_rng(seed),
+    )
+    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+
+
+def mean(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    return np.mean(x, axis=axis)
+
+
+def mean_difference(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
+    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+
+
 @contextlib.contextmanager
 def _seeded(seed: int) -> Iterator[None]:
     """numpy's global generator seeded for rliable's draws, restored afterwards."""

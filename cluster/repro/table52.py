@@ -28,6 +28,8 @@ import numpy as np
 
 from actors.envs.registry import env_name, is_map_file
 from cluster.errors import UsageError
+from cluster.repro import aggregate
+from cluster.repro.aggregate import CONFIDENCE
 from cluster.repro.curves import LAST, Curve, final_per_seed
 
 SOURCE = (
@@ -54,7 +56,6 @@ DISSERTATION = {
 DISSERTATION_STEPS = 2_000_000
 MIN_STEPS = 1_000_000  # the env steps a cell needs to count as a full run (issue 37)
 CLOSE = 0.10  # "close": within 10 win-rate points (the table's own EM-CAC/QMIX pairs: <= 8)
-CONFIDENCE = 0.95
 EPS = 1e-9  # float slack of the interval tests (two means of equal seeds differ by ~1e-16)
 _CHAIN = (("emcac", "ecac"), ("ecac", "cac"))
 CLAIMS = (
@@ -95,32 +96,10 @@ def impossible_cells() -> list[str]:
 
 
 def bootstrap(samples: list[np.ndarray], statistic, reps: int, seed: int) -> list[float] | None:
-    """Percentile bootstrap CONFIDENCE interval of `statistic(*samples, axis)` with each
-    sample resampled on its own (scipy.stats.bootstrap, numpy generator seeded `seed`);
-    None when a sample has fewer than 2 values."""
-    from scipy import stats
-
-    if any(len(s) < 2 for s in samples):
+    """`aggregate.percentile_interval`, or None when a sample has fewer than 2 values."""
+    if any(len(x) < 2 for x in samples):
         return None
-    res = stats.bootstrap(
-        tuple(samples),
-        statistic,
-        n_resamples=reps,
-        confidence_level=CONFIDENCE,
-        method="percentile",
-        paired=False,
-        vectorized=True,
-        rng=np.random.default_rng(seed),
-    )
-    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
-
-
-def _mean(x: np.ndarray, axis: int = -1) -> np.ndarray:
-    return np.mean(x, axis=axis)
-
-
-def _mean_difference(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
-    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+    return aggregate.percentile_interval(samples, statistic, reps, seed)
 
 
 def cell(c: Curve, reps: int, seed: int) -> dict:
@@ -133,7 +112,7 @@ def cell(c: Curve, reps: int, seed: int) -> dict:
         "mean": float(np.mean(per_seed)),
         "per_seed": per_seed.tolist(),
         "iqr": [float(np.percentile(per_seed, 25)), float(np.percentile(per_seed, 75))],
-        "ci_mean": bootstrap([per_seed], _mean, reps, seed),
+        "ci_mean": bootstrap([per_seed], aggregate.mean, reps, seed),
         "seeds": int(per_seed.size),
         "t_env": int(c.t_env[-1]),
         "evaluations": len(c.t_env),
@@ -182,7 +161,7 @@ def compare(relation: str, a: dict | None, b: dict | None, reps: int, seed: int)
         return {"difference": None, "interval": None, "verdict": "missing"}
     x, y = np.asarray(a["per_seed"]), np.asarray(b["per_seed"])
     d = float(x.mean() - y.mean())
-    ci = bootstrap([x, y], _mean_difference, reps, seed)
+    ci = bootstrap([x, y], aggregate.mean_difference, reps, seed)
     if ci is None:
         verdict = "inconclusive"
     elif relation == "ge":

@@ -140,31 +140,17 @@ def _bootstrap(plan: Plan) -> dict:
 def bootstrap_interval(samples: tuple, statistic, plan: Plan) -> tuple[float, list[float]]:
     """(statistic of `samples`, its percentile bootstrap interval, each sample resampled
     apart) with `plan`'s draws and seed."""
-    from scipy import stats
-
-    res = stats.bootstrap(
-        tuple(np.asarray(s, dtype=float) for s in samples),
-        statistic,
-        n_resamples=plan.reps,
-        confidence_level=aggregate.CONFIDENCE,
-        method="percentile",
-        rng=np.random.default_rng(plan.seed),
-    )
-    ci = res.confidence_interval
-    return _r(statistic(*samples, axis=-1)), [_r(ci.low), _r(ci.high)]
+    ci = aggregate.percentile_interval(samples, statistic, plan.reps, plan.seed)
+    return _r(statistic(*samples, axis=-1)), [_r(v) for v in ci]
 
 
 def _r(v) -> float:
     return round(float(v), 4)
 
 
-def _mean(x, axis=-1):
-    return np.mean(x, axis=axis)
-
-
 def _final(c: Curve, zerglings: int | None, plan: Plan) -> dict:
     seeds = [_r(v) for v in final_per_seed(c.won)]  # as recorded: intervals recompute from them
-    mean, ci = bootstrap_interval((seeds,), _mean, plan)
+    mean, ci = bootstrap_interval((seeds,), aggregate.mean, plan)
     return {"zerglings": zerglings, "per_seed": seeds, "mean": mean, "ci": ci}
 
 
@@ -196,10 +182,6 @@ def _slope(algo: str, maps: list[str], lings: dict, final: dict, why: dict, plan
     return {**out, "slope": slope, "ci": ci, **trend, "missing": missing}
 
 
-def _diff(a, b, axis=-1):
-    return np.mean(a, axis=axis) - np.mean(b, axis=axis)
-
-
 def _nostate(env: str, final: dict, why: dict, plan: Plan) -> dict:
     """QMIX-nostate minus QMIX on `env` (module docstring)."""
     from rliable import metrics
@@ -208,7 +190,7 @@ def _nostate(env: str, final: dict, why: dict, plan: Plan) -> dict:
     if missing:
         return {"missing": missing}
     ns, q = (final[env][a]["per_seed"] for a in NOSTATE)
-    diff, ci = bootstrap_interval((ns, q), _diff, plan)
+    diff, ci = bootstrap_interval((ns, q), aggregate.mean_difference, plan)
     m = [np.asarray(s, dtype=float)[:, None] for s in (ns, q)]
     p, p_ci = aggregate.interval(m, metrics.probability_of_improvement, plan.reps, plan.seed)
     out = {"qmix_ns": ns, "qmix": q, "difference": diff, "ci": ci, "beats": RULES["beats"][0](*ci)}
