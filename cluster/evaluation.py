@@ -65,7 +65,7 @@ class Evaluator:
         """Greedy episodes for every member at the loop's `t_env` and `episodes`; one record
         per member."""
         self.learning.sync_worker(self.worker)
-        result = self.worker.run_round(t_env=t_env, greedy=True)
+        result = self.worker.run_round(t_env=t_env, greedy=True, record=False)
         per, has_wins = self.ctx.run.test_episodes, self.ctx.info.has_wins
         records = []
         for k in range(self.ctx.n_ensemble):

@@ -208,8 +208,21 @@ def joint_obs(obs: torch.Tensor) -> torch.Tensor:
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Per-member mean over the real entries: x, mask [E, ...] -> [E]."""
-    dims = tuple(range(1, x.dim()))
-    return (x * mask).sum(dims) / mask.sum(dims).clamp_min(1.0)
+    return masked_part(x, mask, mask_count(mask))
+
+
+def mask_count(mask: torch.Tensor) -> torch.Tensor:
+    """Per-member count of real entries, at least 1: mask [E, ...] -> [E] (`masked_mean`'s
+    denominator)."""
+    return mask.sum(tuple(range(1, mask.dim()))).clamp_min(1.0)
+
+
+def masked_part(x: torch.Tensor, mask: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    """One pass's part of a per-member masked mean over a whole batch: the sum over this
+    pass's real entries divided by the batch's `count` [E] (`mask_count` of the whole
+    batch's mask). The parts of a batch's passes add up to its `masked_mean`
+    (`learner.passes`). Shapes: x, mask [E, ...] -> [E]."""
+    return (x * mask).sum(tuple(range(1, x.dim()))) / count
 
 
 def greedy_actions(q: torch.Tensor, avail: torch.Tensor) -> torch.Tensor:

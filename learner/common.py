@@ -112,12 +112,31 @@ class Updater:
 
     def apply(self, loss_per_member: torch.Tensor) -> torch.Tensor:
         """Backpropagate the sum of per-member losses [E] and step; returns grad norms [E]."""
+        self.zero_grad()
+        self.backward(loss_per_member)
+        return self.step()
+
+    def zero_grad(self) -> None:
+        """Start an update whose loss comes in parts (`backward` each, then `step`)."""
+        self.optimiser.zero_grad(set_to_none=True)
+
+    def backward(self, loss_per_member: torch.Tensor) -> None:
+        """Add the gradient of the sum of per-member losses [E] (a whole loss, or one pass's
+        part of it: `learner.passes`) to the parameters' gradients.
+
+        Raises:
+            NonFiniteLossError: a member's loss is NaN or inf (nothing is backpropagated, and
+                `step` must not follow).
+        """
         if not torch.isfinite(loss_per_member).all():
             bad = loss_per_member.detach().cpu().tolist()
             raise NonFiniteLossError(f"{self.name} loss is not finite: {bad}; update not applied")
-        self.optimiser.zero_grad(set_to_none=True)
         with timed("backward"):
             loss_per_member.sum().backward()
+
+    def step(self) -> torch.Tensor:
+        """Clip each member's accumulated gradient and take the optimiser step; returns the
+        grad norms [E] before clipping."""
         with timed("optimiser"):
             norms = clip_grad_norm_per_member(self.params, self.grad_norm_clip)
             self.optimiser.step()

@@ -14,13 +14,14 @@ method. `RDNLearner.step` below computes the same numbers on structured critic i
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_inputs, greedy_actions, masked_mean
+from learner.batch import TensorBatch, agent_inputs, greedy_actions, mask_count, masked_part
 from learner.common import (
     AgentConfig,
     AgentCriticLearner,
@@ -30,8 +31,9 @@ from learner.common import (
     Updater,
     validate_value_schedule,
 )
-from learner.critic_inputs import AllSteps, RealSteps, agent_blocks
+from learner.critic_inputs import AgentBlocks, AllSteps, RealSteps, agent_blocks
 from learner.networks import MLP, AgentBlockLinear, unroll
+from learner.passes import UPDATE_PASS_ROWS, episode_passes, validate_pass_rows
 from learner.precision import float32_only
 from learner.rdn_fast import agent_targets
 from learner.targets import q_lambda_targets
@@ -65,6 +67,9 @@ class RDNConfig:
             action's target is its LRP share; every other available action a gets that share
             plus the critic's own difference Q_c(x with agent i's action a) - Q_c(x), so the
             agent's action ranking is the critic's and its level is its LRP credit).
+        update_pass_rows: the most agent-steps one forward and backward pass of an update
+            holds; a bigger batch goes through in passes (`learner.passes`; the same update
+            up to float rounding; 0: one pass). As the value family's.
         agent: the shared agent network.
 
     The critic's TD target bootstraps at the agents' greedy next joint action, and the agents'
@@ -87,6 +92,7 @@ class RDNConfig:
     obs_window: int = 4
     lrp_eps: float = 0.01
     agent_targets: Literal["taken", "counterfactual"] = "taken"
+    update_pass_rows: int = UPDATE_PASS_ROWS
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
@@ -111,6 +117,7 @@ class RDNConfig:
             raise ValueError(
                 f"critic_hidden needs at least one positive width, got {self.critic_hidden}"
             )
+        validate_pass_rows(self.update_pass_rows)
 
 
 # Keys an RDNConfig had until commit 828260c, with the one value the code still computes (None:
@@ -220,61 +227,130 @@ class RDNLearner(AgentCriticLearner):
 
         The critic side runs on `self.critic_steps(tb)`'s layout, [E, B', T', ...]: every
         step, or the real steps packed; the agents' Q-values are taken into it, and the next
-        values put back for the Q(lambda) targets, which need the episodes' time order."""
-        tb = TensorBatch.from_episodes(batch, self.device)
-        steps = self.critic_steps(tb)
-        qs_all = unroll(
-            self.agent, agent_inputs(tb.obs, tb.actions, self.info.n_actions)
-        )  # [E, B, T+1, N, A]
-        # the critic's layers are float32 only (under run.precision=bf16 only the agents'
-        # unroll above runs in bfloat16; the cast is exact)
-        with float32_only(qs_all.device):
-            return self._critic_and_agents(tb, steps, qs_all.float())
+        values put back for the Q(lambda) targets, which need the episodes' time order.
 
-    def _critic_and_agents(
-        self, tb: TensorBatch, steps: AllSteps | RealSteps, qs_all: torch.Tensor
-    ) -> dict[str, float]:
-        """`step` after the agents' unroll: the critic's update, then the agents'."""
+        A batch of more than `update_pass_rows` agent-steps goes through in passes
+        (`learner.passes`): the critic's loss pass by pass, one critic step, then the agents'
+        loss pass by pass against the updated critic, one agent step. The agents are unrolled
+        twice then (without a graph for the critic's greedy next actions, with one for their
+        own loss), so that no pass keeps its graph while another is computed."""
+        tb = TensorBatch.from_episodes(batch, self.device)
+        tb = dataclasses.replace(tb, reward=self.reward_norm(tb.reward, tb.mask))
+        passes = episode_passes(tb, self.cfg.update_pass_rows)
+        counts = self._counts(tb)
+        parts = []
+        self.critic_updater.zero_grad()
+        if len(passes) == 1:  # one unroll: its graph serves the agents' loss below
+            steps, qs_all = self.critic_steps(tb), self._unroll(tb)
+            x, metrics = self._critic_pass(tb, steps, qs_all.detach(), counts)
+            parts.append(metrics)
+        else:
+            for part in passes:
+                with torch.no_grad():
+                    qs_part = self._unroll(part)
+                parts.append(self._critic_pass(part, self.critic_steps(part), qs_part, counts)[1])
+                del part, qs_part  # before the next pass is built
+        self.critic_updater.step()
+        self.agent_updater.zero_grad()
+        if len(passes) == 1:
+            parts.append(self._agent_pass(tb, steps, x, qs_all, counts))
+        else:
+            for part in passes:
+                steps = self.critic_steps(part)
+                parts.append(self._agent_pass(part, steps, None, self._unroll(part), counts))
+                del part, steps
+        self.agent_updater.step()
+        self.updates += 1
+        total: dict[str, float] = {}
+        for metrics in parts:
+            for key, value in metrics.items():
+                total[key] = total.get(key, 0.0) + value
+        return {key: float(value.mean()) for key, value in total.items()}
+
+    def _unroll(self, tb: TensorBatch) -> torch.Tensor:
+        """The agents' Q-values [E, B, T+1, N, A], float32 (under run.precision=bf16 only the
+        agents' unroll runs in bfloat16: the critic's layers are float32 only; the cast is
+        exact)."""
+        qs = unroll(self.agent, agent_inputs(tb.obs, tb.actions, self.info.n_actions))
+        return qs.float()
+
+    def _counts(self, tb: TensorBatch) -> dict[str, torch.Tensor]:
+        """The whole batch's denominators of the update's masked means, [E] each: its real
+        steps, its agent-steps, and (counterfactual targets) its available actions at them."""
+        counts = {
+            "steps": mask_count(tb.mask),
+            "agent_steps": mask_count(tb.mask.unsqueeze(-1).expand(*tb.shape)),
+        }
+        if self.cfg.agent_targets == "counterfactual":
+            ok = tb.avail[:, :, : tb.shape[2]] & tb.mask.bool()[..., None, None]
+            counts["actions"] = mask_count(ok.float())
+        return counts
+
+    def _critic_pass(
+        self,
+        tb: TensorBatch,
+        steps: AllSteps | RealSteps,
+        qs_all: torch.Tensor,
+        counts: dict[str, torch.Tensor],
+    ) -> tuple[AgentBlocks | torch.Tensor, dict[str, torch.Tensor]]:
+        """Backpropagate this pass's part of the critic's TD loss (qs_all: the agents'
+        Q-values, without gradient; tb's rewards already normalised); returns the critic's
+        input and this pass's part of the loss metric."""
+        actions = steps.take(tb.actions)
+        e, b, t = steps.mask.shape
+        with float32_only(qs_all.device):
+            x = self.critic_inputs(steps.hist(), actions)
+            with torch.no_grad():
+                greedy = greedy_actions(steps.take(qs_all, 1), steps.take(tb.avail, 1))
+                x_next = self.critic_inputs(steps.hist(1), greedy)
+                v_next = steps.put(self.target_critic.module(x_next).view(e, b, t))  # [E, B, T]
+                y = q_lambda_targets(
+                    tb.reward, tb.terminated, tb.mask, v_next, self.cfg.gamma, self.cfg.td_lambda
+                )
+                y = steps.take(y)
+            q_c = self.critic(x).view(e, b, t)
+            loss = masked_part((q_c - y).pow(2), steps.mask, counts["steps"])
+            self.critic_updater.backward(loss)
+        return x, {"loss_critic": loss.detach()}
+
+    def _agent_pass(
+        self,
+        tb: TensorBatch,
+        steps: AllSteps | RealSteps,
+        x: AgentBlocks | torch.Tensor | None,
+        qs_all: torch.Tensor,
+        counts: dict[str, torch.Tensor],
+    ) -> dict[str, torch.Tensor]:
+        """Backpropagate this pass's part of the agents' loss toward the (updated) critic's
+        LRP shares at its input x (None: built here); qs_all: the agents' Q-values with their
+        graph. Returns this pass's parts of the metrics."""
         n, a = self.info.n_agents, self.info.n_actions
         qs, actions, avail = steps.take(qs_all), steps.take(tb.actions), steps.take(tb.avail)
         e, b, t = steps.mask.shape
-        x = self.critic_inputs(steps.hist(), actions)
-        with torch.no_grad():
-            greedy = greedy_actions(steps.take(qs_all.detach(), 1), steps.take(tb.avail, 1))
-            x_next = self.critic_inputs(steps.hist(1), greedy)
-            v_next = steps.put(self.target_critic.module(x_next).view(e, b, t))  # [E, B, T]
-            reward = self.reward_norm(tb.reward, tb.mask)
-            y = q_lambda_targets(
-                reward, tb.terminated, tb.mask, v_next, self.cfg.gamma, self.cfg.td_lambda
-            )
-            y = steps.take(y)
-        q_c = self.critic(x).view(e, b, t)
-        critic_loss = masked_mean((q_c - y).pow(2), steps.mask)
-        self.critic_updater.apply(critic_loss)
-
         counterfactual = self.cfg.agent_targets == "counterfactual"
         ok = avail & steps.mask.bool()[..., None, None]  # the entries the agents' loss uses
         keep = ok.view(e, b * t, n, a) if counterfactual else None
         offset = self.cfg.obs_window * self.info.obs_dim
-        shares, q_tot, every = agent_targets(
-            self.critic, x, actions.view(e, b * t, n), keep, self.cfg.lrp_eps, offset
-        )
-        shares = shares.view(e, b, t, n)
-        if not counterfactual:
-            chosen = qs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-            mask = steps.mask.unsqueeze(-1).expand_as(chosen)
-            agent_loss = masked_mean((chosen - shares).pow(2), mask)
-        else:  # a target for every available action of every agent
-            agent_loss = masked_mean((qs - every.view(e, b, t, n, a)).pow(2), ok.float())
-        self.agent_updater.apply(agent_loss)
-
-        self.updates += 1
+        with float32_only(qs_all.device):
+            if x is None:
+                x = self.critic_inputs(steps.hist(), actions)
+            shares, q_tot, every = agent_targets(
+                self.critic, x, actions.view(e, b * t, n), keep, self.cfg.lrp_eps, offset
+            )
+            shares = shares.view(e, b, t, n)
+            if not counterfactual:
+                chosen = qs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+                mask = steps.mask.unsqueeze(-1).expand_as(chosen)
+                loss = masked_part((chosen - shares).pow(2), mask, counts["agent_steps"])
+            else:  # a target for every available action of every agent
+                target = every.view(e, b, t, n, a)
+                loss = masked_part((qs - target).pow(2), ok.float(), counts["actions"])
+            self.agent_updater.backward(loss)
         gap = (shares.sum(-1) - q_tot.view(e, b, t)).abs()
         return {
-            "loss_critic": float(critic_loss.detach().mean()),
-            "loss_agent": float(agent_loss.detach().mean()),
-            "q_tot_mean": float(masked_mean(q_tot.view(e, b, t), steps.mask).mean()),
-            "lrp_conservation_gap": float(masked_mean(gap, steps.mask).mean()),
+            "loss_agent": loss.detach(),
+            "q_tot_mean": masked_part(q_tot.view(e, b, t), steps.mask, counts["steps"]),
+            "lrp_conservation_gap": masked_part(gap, steps.mask, counts["steps"]),
         }
 
     def state_dict(self) -> dict:

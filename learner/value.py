@@ -10,13 +10,21 @@ how the chosen agents' Q-values become the quantity regressed onto the TD target
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
 
 from buffer_service.episode import EpisodeBatch, EpisodeSchema
-from learner.batch import TensorBatch, agent_inputs, greedy_actions, joint_obs, masked_mean
+from learner.batch import (
+    TensorBatch,
+    agent_inputs,
+    greedy_actions,
+    joint_obs,
+    mask_count,
+    masked_part,
+)
 from learner.common import (
     AgentConfig,
     EpisodeClock,
@@ -26,6 +34,7 @@ from learner.common import (
     validate_value_schedule,
 )
 from learner.networks import QMixer, VersionedWeights, unroll
+from learner.passes import UPDATE_PASS_ROWS, episode_passes, validate_pass_rows
 from learner.targets import q_lambda_targets
 
 Mixing = Literal["none", "sum", "qmix", "qmix_ns"]
@@ -49,6 +58,11 @@ class ValueConfig:
         double_q: pick the next action with the online network, evaluate with the target.
         mixer_embed: QMIX mixing embedding (qmix, qmix_ns only).
         hypernet_hidden: hidden width of QMIX's hypernetworks (qmix, qmix_ns only).
+        update_pass_rows: the most agent-steps (members x episodes x steps x agents, padding
+            included) one forward and backward pass of an update holds; a bigger batch goes
+            through in passes of episodes of similar length whose gradients add up to the
+            batch's (`learner.passes`: the same update up to float rounding, with a bounded
+            working set and less padding). 0: the whole batch in one pass.
         agent: the shared agent network.
     """
 
@@ -62,6 +76,7 @@ class ValueConfig:
     double_q: bool = True
     mixer_embed: int = 32
     hypernet_hidden: int = 64
+    update_pass_rows: int = UPDATE_PASS_ROWS
     agent: AgentConfig = field(default_factory=AgentConfig)
 
     def validate(self) -> None:
@@ -76,6 +91,7 @@ class ValueConfig:
         )
         if self.mixer_embed < 1 or self.hypernet_hidden < 1:
             raise ValueError("mixer_embed and hypernet_hidden must be >= 1")
+        validate_pass_rows(self.update_pass_rows)
 
 
 class ValueLearner:
@@ -142,9 +158,37 @@ class ValueLearner:
         return mixer(qs.reshape(e, b * t, n), cond.reshape(e, b * t, -1)).view(e, b, t)
 
     def step(self, batch: EpisodeBatch, extra: EpisodeBatch | None = None) -> dict[str, float]:
-        """One Q-learning update on a batch of episodes (`extra` is unused); returns metrics."""
+        """One Q-learning update on a batch of episodes (`extra` is unused); returns metrics.
+
+        The batch goes through in passes of at most `update_pass_rows` agent-steps
+        (`learner.passes`), whose gradients add up to the whole batch's before one clip and
+        optimiser step."""
         tb = TensorBatch.from_episodes(batch, self.device)
-        reward = self.reward_norm(tb.reward, tb.mask)
+        tb = dataclasses.replace(tb, reward=self.reward_norm(tb.reward, tb.mask))
+        count = mask_count(tb.mask)
+        if self.mixing == "none":  # every agent's TD error is an entry of the mean
+            count = mask_count(tb.mask.unsqueeze(-1).expand(*tb.shape))
+        self.updater.zero_grad()
+        loss, q_taken = torch.zeros_like(count), torch.zeros_like(count)
+        for part in episode_passes(tb, self.cfg.update_pass_rows):
+            loss_part, q_part = self._pass(part, count, mask_count(tb.mask))
+            self.updater.backward(loss_part)
+            loss, q_taken = loss + loss_part.detach(), q_taken + q_part
+            del part, loss_part  # before the next pass is built
+        norms = self.updater.step()
+        self.updates += 1
+        return {
+            "loss_td": float(loss.mean()),
+            "q_taken_mean": float(q_taken.mean()),
+            "grad_norm": float(norms.mean()),
+        }
+
+    def _pass(
+        self, tb: TensorBatch, count: torch.Tensor, steps: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One pass's part of the TD loss ([E], with gradient) and of the mean Q-value of the
+        taken actions ([E]), as shares of the whole batch's `count` of loss entries and its
+        `steps` (`masked_part`); tb's rewards are already normalised."""
         inputs = agent_inputs(tb.obs, tb.actions, self.info.n_actions)
         qs = unroll(self.agent, inputs)  # [E, B, T+1, N, A]
         chosen = qs[:, :, :-1].gather(-1, tb.actions.unsqueeze(-1)).squeeze(-1)  # [E, B, T, N]
@@ -160,7 +204,7 @@ class ValueLearner:
         if self.mixing == "none":
             # per agent: put the agent axis before time for the target recursion
             y = q_lambda_targets(
-                reward.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
+                tb.reward.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
                 tb.terminated.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
                 tb.mask.unsqueeze(-2).expand_as(next_q.transpose(-1, -2)),
                 next_q.transpose(-1, -2),
@@ -168,7 +212,7 @@ class ValueLearner:
                 cfg.td_lambda,
             ).transpose(-1, -2)
             td = chosen - y
-            loss = masked_mean(td.pow(2), tb.mask.unsqueeze(-1).expand_as(td))
+            loss = masked_part(td.pow(2), tb.mask.unsqueeze(-1).expand_as(td), count)
             q_taken = chosen.mean(-1)
         else:
             cond = self._cond(tb)
@@ -177,18 +221,12 @@ class ValueLearner:
                 target_mixer = self.target_mixer.module if self.target_mixer else None
                 next_tot = self._mix(target_mixer, next_q, cond[:, :, 1:])
                 y = q_lambda_targets(
-                    reward, tb.terminated, tb.mask, next_tot, cfg.gamma, cfg.td_lambda
+                    tb.reward, tb.terminated, tb.mask, next_tot, cfg.gamma, cfg.td_lambda
                 )
             td = q_tot - y
-            loss = masked_mean(td.pow(2), tb.mask)
+            loss = masked_part(td.pow(2), tb.mask, count)
             q_taken = q_tot
-        norms = self.updater.apply(loss)
-        self.updates += 1
-        return {
-            "loss_td": float(loss.detach().mean()),
-            "q_taken_mean": float(masked_mean(q_taken.detach(), tb.mask).mean()),
-            "grad_norm": float(norms.mean()),
-        }
+        return loss, masked_part(q_taken.detach(), tb.mask, steps)
 
     def get_weights(self) -> VersionedWeights:
         return VersionedWeights.from_module(self.agent, self.updates)

@@ -226,6 +226,30 @@ def test_acting_network_is_built_from_the_learners_description(name):
         np.testing.assert_array_equal(x.actions, y.actions)
 
 
+@pytest.mark.parametrize("greedy", [True, False])
+def test_a_round_without_records_plays_the_same_episodes(greedy):
+    """`run_round(record=False)` (what the evaluation uses) keeps no episodes but plays what a
+    recording round plays: the same returns, wins and steps, greedy and exploring; the
+    worker's env-step count moves the same way."""
+    cfg = load_train_config("vdn", "skirmish/3m", [], [])
+    schema = make_vec_env(cfg.env.id, 1).info.schema()
+    torch.manual_seed(0)
+    agent = cfg.algo.agent.build(2, schema)
+    results, counts = [], []
+    for record in (True, False):
+        venv = make_vec_env(cfg.env.id, 8, seed=3)
+        worker = RolloutWorker(venv, agent, "q", ExplorationConfig(0.5, 0.5, 1), 2, seed=1)
+        results.append([worker.run_round(greedy=greedy, record=record) for _ in range(2)])
+        counts.append(worker.t_env)
+    for kept, bare in zip(*results, strict=True):
+        assert len(kept.episodes) == 8 and bare.episodes == []
+        np.testing.assert_array_equal(kept.returns, bare.returns)
+        np.testing.assert_array_equal(kept.won, bare.won)
+        assert kept.env_steps == bare.env_steps
+        assert kept.env_steps == sum(ep.length for ep in kept.episodes)
+    assert counts[0] == counts[1] > 0
+
+
 def test_a_worker_refuses_a_network_of_another_input_width():
     cfg = load_train_config("vdn", "matrix/two_step", [], [])
     venv = make_vec_env(cfg.env.id, 1, seed=0, **cfg.env.args)
