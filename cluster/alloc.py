@@ -28,6 +28,11 @@ mallinfo2 after every round, load 6-12 on the 2-core machine):
   twelfth of the bytes) in buffers of their own outside the heap (`stored_buffer`: an
   anonymous mapping each, unmapped with the episode), and the same steps gave heap 2.85 ->
   2.87 GiB. Resident memory is then the heap's peak plus the replay's byte budget.
+* Large batches and updates: a padded batch of a big map now lives in mappings of its own
+  (`buffer_service.episode.batch_zeros`), and an update runs in passes of bounded size
+  (`learner.passes`), so the heap's peak is one pass's working set rather than a whole
+  batch's; the judged 3-seed bane_vs_bane RDN run peaked at 1.28 GiB against 4.24 GiB at
+  828260c (results/bench/NOTES.md, "Updates in passes").
 """
 
 from __future__ import annotations
