@@ -261,10 +261,10 @@ class RDNLearner(AgentCriticLearner):
                 del part, steps
         self.agent_updater.step()
         self.updates += 1
-        total: dict[str, float] = {}
+        total: dict[str, torch.Tensor] = {}
         for metrics in parts:
             for key, value in metrics.items():
-                total[key] = total.get(key, 0.0) + value
+                total[key] = total[key] + value if key in total else value
         return {key: float(value.mean()) for key, value in total.items()}
 
     def _unroll(self, tb: TensorBatch) -> torch.Tensor:
