@@ -33,9 +33,24 @@ class EpisodeError(ValueError):
 BATCH_MAPPED_MIN_BYTES = 16 * 2**20  # a batch array at least this large gets its own mapping
 
 
+def zeros_off_heap(shape: tuple[int, ...], dtype, min_bytes: int) -> np.ndarray:
+    """`np.zeros(shape, dtype)`, from an anonymous mapping of its own (zero pages from the
+    kernel, unmapped when the last view goes) when it holds at least `min_bytes`, else from
+    malloc's heap. What the replay's stored episodes (`buffer_service.packed.stored_buffer`)
+    and large batches (`batch_zeros`) are allocated with."""
+    nbytes = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    if nbytes >= min_bytes:
+        try:
+            flat = np.frombuffer(mmap.mmap(-1, nbytes), dtype)
+            return flat.reshape(shape) if len(shape) > 1 else flat
+        except OSError:  # out of mappings (vm.max_map_count): the heap will do
+            pass
+    return np.zeros(shape, dtype)
+
+
 def batch_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """`np.zeros(shape, dtype)` for a batch's array: from an anonymous mapping of its own when
-    it holds at least BATCH_MAPPED_MIN_BYTES, else from the heap.
+    """`np.zeros(shape, dtype)` for a batch's array: off the heap (`zeros_off_heap`) when it
+    holds at least BATCH_MAPPED_MIN_BYTES.
 
     A padded batch of a big map is large and short-lived (bane_vs_bane, 3 seeds of 32
     episodes: 0.3-0.6 GB of observations) and each has another length. From malloc's heap,
@@ -44,13 +59,7 @@ def batch_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
     pages nobody writes (most of the padding) never become resident. Small batches (3m's)
     stay on the heap, where a mapping's page faults would cost more than they save.
     """
-    nbytes = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
-    if nbytes >= BATCH_MAPPED_MIN_BYTES:
-        try:
-            return np.frombuffer(mmap.mmap(-1, nbytes), dtype).reshape(shape)
-        except OSError:  # out of mappings (vm.max_map_count): the heap will do
-            pass
-    return np.zeros(shape, dtype)
+    return zeros_off_heap(shape, dtype, BATCH_MAPPED_MIN_BYTES)
 
 
 @dataclass(frozen=True)

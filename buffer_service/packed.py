@@ -37,6 +37,7 @@ from buffer_service.episode import (
     Episode,
     EpisodeError,
     EpisodeSchema,
+    zeros_off_heap,
 )
 
 PACKING = 1  # the layout version written by `PackedEpisode.pack`; the wire records it
@@ -62,12 +63,7 @@ def stored_buffer(nbytes: int) -> np.ndarray:
     (3m's episodes) stay on the heap, where a page each would waste more than fragmentation
     costs.
     """
-    if nbytes >= MAPPED_MIN_BYTES:
-        try:
-            return np.frombuffer(mmap.mmap(-1, nbytes), np.uint8)
-        except OSError:  # out of mappings (vm.max_map_count): the heap will do
-            pass
-    return np.empty(nbytes, np.uint8)
+    return zeros_off_heap((nbytes,), np.uint8, MAPPED_MIN_BYTES)
 
 
 def joined(parts: list[np.ndarray]) -> np.ndarray:

@@ -165,13 +165,14 @@ class ValueLearner:
         optimiser step."""
         tb = TensorBatch.from_episodes(batch, self.device)
         tb = dataclasses.replace(tb, reward=self.reward_norm(tb.reward, tb.mask))
-        count = mask_count(tb.mask)
+        steps = mask_count(tb.mask)
+        count = steps
         if self.mixing == "none":  # every agent's TD error is an entry of the mean
             count = mask_count(tb.mask.unsqueeze(-1).expand(*tb.shape))
         self.updater.zero_grad()
         loss, q_taken = torch.zeros_like(count), torch.zeros_like(count)
         for part in episode_passes(tb, self.cfg.update_pass_rows):
-            loss_part, q_part = self._pass(part, count, mask_count(tb.mask))
+            loss_part, q_part = self._pass(part, count, steps)
             self.updater.backward(loss_part)
             loss, q_taken = loss + loss_part.detach(), q_taken + q_part
             del part, loss_part  # before the next pass is built
