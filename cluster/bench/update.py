@@ -9,6 +9,11 @@ alike; the JSON has each one's median milliseconds per update, its ratio to the 
 The allocator is set up as training sets it (`run.keep_freed_memory`, on by default:
 `cluster.alloc`), the same for every algorithm; with it on, memory an update reuses from the
 previous one is not counted in `peak_mib_per_update`.
+
+`--profile N` also runs one more update of each algorithm under `torch.profiler` and lists
+its N most expensive operators by their own CPU time (`profile`: operator, milliseconds,
+calls, share of the update's operator time). Shares are what to read on a busy machine: the
+milliseconds stretch with the load, the split between operators much less.
 """
 
 from __future__ import annotations
@@ -53,6 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="[ALGO:]KEY=VALUE",
         help="config override; with ALGO: for that algorithm only",
+    )
+    p.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also profile one update per algorithm and list its N costliest operators",
     )
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=cmd_update)
@@ -111,6 +123,25 @@ def overrides_for(algo: str, overrides: list[str]) -> list[str]:
     return out
 
 
+def profile_update(learner, batch: EpisodeBatch, top: int) -> list[dict]:
+    """One update under torch.profiler: its `top` operators by self CPU time, each with its
+    milliseconds, number of calls and share of the self time of every operator."""
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        learner.step(batch)
+    ops = [ev for ev in prof.key_averages() if ev.key.startswith("aten::")]
+    total = sum(ev.self_cpu_time_total for ev in ops) or 1.0
+    ops.sort(key=lambda ev: ev.self_cpu_time_total, reverse=True)
+    return [
+        {
+            "op": ev.key,
+            "self_ms": round(ev.self_cpu_time_total / 1000, 2),
+            "calls": int(ev.count),
+            "share": round(ev.self_cpu_time_total / total, 4),
+        }
+        for ev in ops[:top]
+    ]
+
+
 def cmd_update(args: argparse.Namespace) -> int:
     algos = [a for a in args.algos.split(",") if a]
     if not algos:
@@ -120,6 +151,8 @@ def cmd_update(args: argparse.Namespace) -> int:
             get_algo(a)
         except ValueError as e:
             raise UsageError(str(e)) from None
+    if args.profile < 0:
+        raise UsageError(f"--profile must be >= 0, got {args.profile}")
     torch.set_num_threads(1)
     learners, cfgs = {}, {}
     for a in algos:
@@ -147,6 +180,9 @@ def cmd_update(args: argparse.Namespace) -> int:
             times[a].append((time.perf_counter() - started) / args.updates * 1000)
     ms = {a: round(float(np.median(v)), 2) for a, v in times.items()}
     first = algos[0]
+    extra = {}
+    if args.profile:
+        extra["profile"] = {a: profile_update(m, batch, args.profile) for a, m in learners.items()}
     emit(
         "update",
         {
@@ -162,6 +198,7 @@ def cmd_update(args: argparse.Namespace) -> int:
             "keep_freed_memory": kept,
             "rounds_ms": {a: [round(x, 2) for x in v] for a, v in times.items()},
             "load_avg_1m": os.getloadavg()[0],
+            **extra,
         },
         args.out,
     )

@@ -86,6 +86,7 @@ def test_bench_learn_reports_each_seed_and_the_load(tmp_path, capsys, keep_torch
         (["bench", "learn", "--env", "matrix/two_step"], "reports no battle wins"),
         (["bench", "learn", "--algo", "dqn"], "unknown algorithm 'dqn'"),
         (["bench", "update", "--algos", "vdn,dqn"], "unknown algorithm 'dqn'"),
+        (["bench", "update", "--profile", "-1"], "--profile must be >= 0, got -1"),
         (
             ["bench", "update", "--algos", "vdn,rdn", "--set", "vdn:run.keep_freed_memory=false"],
             "run.keep_freed_memory must be the same for every algorithm",
@@ -108,3 +109,18 @@ def test_bench_update_times_algorithms_side_by_side(capsys):
     assert set(got["ms_per_update"]) == {"vdn", "rdn"} and got["ratio_to_vdn"]["vdn"] == 1.0
     assert got["ratio"] == got["ratio_to_vdn"]["rdn"]
     assert set(got["peak_mib_per_update"]) == {"vdn", "rdn"}
+    assert "profile" not in got
+
+
+def test_bench_update_profile_lists_the_costliest_operators(capsys):
+    argv = ["bench", "update", "--env", "skirmish/3m", "--algos", "vdn", "--batch", "4"]
+    argv += ["--set", "run.keep_freed_memory=false", "--rounds", "1", "--updates", "1"]
+    assert main([*argv, "--profile", "4"]) == 0
+    rows = json.loads(capsys.readouterr().out)["profile"]["vdn"]
+    assert len(rows) == 4 and all(r["op"].startswith("aten::") for r in rows)
+    selfs = [r["self_ms"] for r in rows]
+    assert selfs == sorted(selfs, reverse=True) and selfs[0] > 0
+    assert all(r["calls"] >= 1 for r in rows)
+    # shares of the update's operator time: the top four cannot exceed all of it
+    assert 0 < sum(r["share"] for r in rows) <= 1.0
+    assert rows[0]["share"] >= rows[-1]["share"] > 0
