@@ -33,11 +33,12 @@ class EpisodeError(ValueError):
 BATCH_MAPPED_MIN_BYTES = 16 * 2**20  # a batch array at least this large gets its own mapping
 
 
-def zeros_off_heap(shape: tuple[int, ...], dtype, min_bytes: int) -> np.ndarray:
-    """`np.zeros(shape, dtype)`, from an anonymous mapping of its own (zero pages from the
-    kernel, unmapped when the last view goes) when it holds at least `min_bytes`, else from
-    malloc's heap. What the replay's stored episodes (`buffer_service.packed.stored_buffer`)
-    and large batches (`batch_zeros`) are allocated with."""
+def off_heap_array(shape: tuple[int, ...], dtype, min_bytes: int, zeroed: bool) -> np.ndarray:
+    """An array of `shape` from an anonymous mapping of its own (zero pages from the kernel,
+    unmapped when the last view goes) when it holds at least `min_bytes`, else from malloc's
+    heap: `np.zeros` there when `zeroed`, `np.empty` when the caller writes every element.
+    What the replay's stored episodes (`buffer_service.packed.stored_buffer`) and large
+    batches (`batch_zeros`) are allocated with."""
     nbytes = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
     if nbytes >= min_bytes:
         try:
@@ -45,11 +46,11 @@ def zeros_off_heap(shape: tuple[int, ...], dtype, min_bytes: int) -> np.ndarray:
             return flat.reshape(shape) if len(shape) > 1 else flat
         except OSError:  # out of mappings (vm.max_map_count): the heap will do
             pass
-    return np.zeros(shape, dtype)
+    return np.zeros(shape, dtype) if zeroed else np.empty(shape, dtype)
 
 
 def batch_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """`np.zeros(shape, dtype)` for a batch's array: off the heap (`zeros_off_heap`) when it
+    """`np.zeros(shape, dtype)` for a batch's array: off the heap (`off_heap_array`) when it
     holds at least BATCH_MAPPED_MIN_BYTES.
 
     A padded batch of a big map is large and short-lived (bane_vs_bane, 3 seeds of 32
@@ -59,7 +60,7 @@ def batch_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
     pages nobody writes (most of the padding) never become resident. Small batches (3m's)
     stay on the heap, where a mapping's page faults would cost more than they save.
     """
-    return zeros_off_heap(shape, dtype, BATCH_MAPPED_MIN_BYTES)
+    return off_heap_array(shape, dtype, BATCH_MAPPED_MIN_BYTES, zeroed=True)
 
 
 @dataclass(frozen=True)

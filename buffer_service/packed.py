@@ -37,7 +37,7 @@ from buffer_service.episode import (
     Episode,
     EpisodeError,
     EpisodeSchema,
-    zeros_off_heap,
+    off_heap_array,
 )
 
 PACKING = 1  # the layout version written by `PackedEpisode.pack`; the wire records it
@@ -63,7 +63,7 @@ def stored_buffer(nbytes: int) -> np.ndarray:
     (3m's episodes) stay on the heap, where a page each would waste more than fragmentation
     costs.
     """
-    return zeros_off_heap((nbytes,), np.uint8, MAPPED_MIN_BYTES)
+    return off_heap_array((nbytes,), np.uint8, MAPPED_MIN_BYTES, zeroed=False)  # all written
 
 
 def joined(parts: list[np.ndarray]) -> np.ndarray:
