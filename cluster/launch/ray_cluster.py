@@ -42,14 +42,68 @@ def state_dir() -> Path:
 
 
 def token_path() -> Path:
-    """The cluster's auth token file, created (mode 0600) on first use."""
+    """The cluster's auth token file, created (mode 0600) on first use.
+
+    Several of our processes may create it at once (two runs started together with a fresh
+    state folder): the token is written whole to a file of this process's own and linked into
+    place, so nobody reads a half-written token and whoever links second keeps the first's."""
     path = state_dir() / "ray_auth_token"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
             f.write(secrets.token_hex(32))
+        try:
+            os.link(tmp, path)  # atomic, and never replaces a token that is already there
+        except FileExistsError:
+            pass
+        finally:
+            tmp.unlink()
     return path
+
+
+def start_lock_path() -> Path:
+    """The file every private Ray start of this machine locks (see `local_start_lock`)."""
+    import tempfile
+
+    return Path(tempfile.gettempdir()) / "credit-ray-local-start.lock"
+
+
+@contextlib.contextmanager
+def local_start_lock(timeout_s: float = 300.0):
+    """Hold a machine-wide lock while a private Ray instance starts.
+
+    Ray chooses its ports (GCS, raylet, workers) by probing for free ones before its processes
+    bind them, so two instances started at the same moment can pick the same port and one
+    fails ("Failed to start GCS"; ray-project/ray#53906). Our runs start one at a time: when
+    `ray.init` returns every port of the instance is bound. The lock is an flock on a file in
+    the temporary folder, released when the holder exits, even by kill -9. If it cannot be
+    taken (another user's file, or `timeout_s` passes) the start goes ahead unserialised,
+    with a warning."""
+    import fcntl
+
+    path = start_lock_path()
+    try:
+        f = open(path, "a")  # noqa: SIM115 - closed below, which releases the lock
+    except OSError as e:
+        log.warning("starting Ray without the start lock (%s: %s)", path, e)
+        yield
+        return
+    with f:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    log.warning(
+                        "another Ray start held %s for %.0f s; starting anyway", path, timeout_s
+                    )
+                    break
+                time.sleep(0.1)
+        yield
 
 
 def ray_environment() -> dict[str, str]:
@@ -151,7 +205,8 @@ def up(num_cpus: int, port: int = 6379, host: str = LOOPBACK) -> ClusterState:
         str(num_cpus),
     ]
     args += ["--include-dashboard=false", "--disable-usage-stats"]
-    done, pgid = _run_ray(args, new_session=True)
+    with local_start_lock():  # `ray start` chooses its other ports as ray.init does
+        done, pgid = _run_ray(args, new_session=True)
     if done.returncode != 0:
         raise ClusterError(
             f"ray start failed (exit {done.returncode}):\n{done.stderr.strip()[-2000:]}"
@@ -336,12 +391,13 @@ def connect(address: str | None, num_cpus: int, runtime_env: dict | None = None)
                 "`credit cluster up --num-cpus N`, or pass --address HOST:PORT"
             ) from None
         return f"joined Ray cluster at {address}"
-    ray.init(
-        address="local",  # always a new instance, never the latest `ray start` head
-        num_cpus=num_cpus,
-        include_dashboard=False,
-        logging_level="WARNING",
-        runtime_env=runtime_env,
-        _node_ip_address=LOOPBACK,
-    )
+    with local_start_lock():
+        ray.init(
+            address="local",  # always a new instance, never the latest `ray start` head
+            num_cpus=num_cpus,
+            include_dashboard=False,
+            logging_level="WARNING",
+            runtime_env=runtime_env,
+            _node_ip_address=LOOPBACK,
+        )
     return f"started a local Ray instance with {num_cpus} CPUs on {LOOPBACK}"

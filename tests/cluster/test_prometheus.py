@@ -187,6 +187,7 @@ def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
                 timeout_s=240,
                 what=f"{name}'s targets.json (learner, actor, buffer service)",
                 proc=procs[name][0],
+                log=tmp_path / f"{name}.log",
             )
         up = ["metrics", "up", "--port", "0", "--state-dir", str(metrics_state)]
         assert subprocess.run([sys.executable, "-m", "cluster.cli", *up], env=env).returncode == 0
