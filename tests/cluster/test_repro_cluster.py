@@ -133,12 +133,14 @@ def test_a_killed_pair_is_retried_and_the_output_is_whole(tmp_path, env, cluster
                 timeout_s=180,
                 what="the vdn pair's start",
                 proc=driver,
+                log=log_path,
             )
             wait_for(
                 lambda: (out / "resume" / "matrix-two_step__vdn" / "pair.json").exists(),
                 timeout_s=120,
                 what="the vdn pair's first checkpoint",
                 proc=driver,
+                log=log_path,
             )
             os.kill(pid, signal.SIGKILL)  # the Ray worker process running the pair
             assert driver.wait(timeout=300) == 0, log_path.read_text()[-3000:]

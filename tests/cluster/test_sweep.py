@@ -102,7 +102,13 @@ def test_sweep_on_a_local_cluster_resumes_and_survives_a_killed_trial(tmp_path, 
     try:
         driver = _driver(command, env, first_log)
         try:
-            wait_for(lambda: len(done()) >= 2, timeout_s=300, what="2 trials", proc=driver)
+            wait_for(
+                lambda: len(done()) >= 2,
+                timeout_s=300,
+                what="2 trials",
+                proc=driver,
+                log=first_log,
+            )
             driver.send_signal(signal.SIGINT)  # Ctrl-C: Tune saves its state and stops
             driver.wait(timeout=120)
         finally:
@@ -119,6 +125,7 @@ def test_sweep_on_a_local_cluster_resumes_and_survives_a_killed_trial(tmp_path, 
                 timeout_s=240,
                 what="a trial's start in the resumed sweep",
                 proc=driver,
+                log=second_log,
             )
             metrics = trials / victim / "metrics.jsonl"
             wait_for(
@@ -126,6 +133,7 @@ def test_sweep_on_a_local_cluster_resumes_and_survives_a_killed_trial(tmp_path, 
                 timeout_s=120,
                 what=f"{victim}'s first evaluation",
                 proc=driver,
+                log=second_log,
             )
             os.kill(pid, signal.SIGKILL)  # the Ray worker process running the trial
             assert driver.wait(timeout=600) == 0, second_log.read_text()[-3000:]
