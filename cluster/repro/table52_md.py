@@ -80,11 +80,20 @@ def _verdict(claim: dict) -> str:
     return text
 
 
+def _points(fraction: float) -> str:
+    """A difference of win rates in signed points: whole points, but one decimal under one
+    point, so that a difference of one won episode is not printed as "-0" (or "+0")."""
+    v = 100 * fraction
+    if v == 0:
+        return "0"
+    return f"{v:+.1f}" if abs(v) < 0.95 else f"{v:+.0f}"
+
+
 def _test_text(x: dict) -> str:
     name = f"{x['map']} {NAMES[x['a']]} − {NAMES[x['b']]}"
     ci = x["interval"]
-    spread = "" if ci is None else f" [{100 * ci[0]:+.0f}, {100 * ci[1]:+.0f}]"
-    return f"{name} {100 * x['difference']:+.0f}{spread}: {x['verdict']}"
+    spread = "" if ci is None else f" [{_points(ci[0])}, {_points(ci[1])}]"
+    return f"{name} {_points(x['difference'])}{spread}: {x['verdict']}"
 
 
 def _claims(t: dict) -> list[str]:

@@ -216,3 +216,14 @@ def test_summarise_only_with_some_pairs_and_split_seed_groups(tmp_path, capsys):
     md = (tmp_path / "table52.md").read_text()
     assert "| 3s5z | CAC | 3 | 20, 40, 60 |" in md and "— not run (vs 0/0)" in md
     assert "table52.md" in capsys.readouterr().out
+
+
+def test_small_differences_keep_their_sign_and_a_decimal():
+    """One won greedy episode in a cell's last 10 evaluations is 1/600 of a 3-seed mean: its
+    difference reads -0.2 points, not "-0", and an exact 0 has no sign."""
+    from cluster.repro.table52_md import _points
+
+    assert _points(-1 / 600) == "-0.2"
+    assert _points(0.0) == _points(-0.0) == "0"
+    assert _points(0.004) == "+0.4"
+    assert _points(0.38) == "+38" and _points(-0.12) == "-12"
