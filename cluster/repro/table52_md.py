@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from cluster.repro.curves import LAST, Curve
-from cluster.repro.table52 import ALGOS, CLOSE, MIN_STEPS, NAMES, table52
+from cluster.repro.table52 import ALGOS, CLOSE, EPS, MIN_STEPS, NAMES, table52
 
 FILE = "table52.md"
 
@@ -81,12 +81,13 @@ def _verdict(claim: dict) -> str:
 
 
 def _points(fraction: float) -> str:
-    """A difference of win rates in signed points: whole points, but one decimal under one
-    point, so that a difference of one won episode is not printed as "-0" (or "+0")."""
+    """A difference of win rates in signed points: whole points, but one significant digit
+    under one point, so that a difference of one won episode is not printed as "-0" (or
+    "+0"). Within the verdicts' float slack of 0 (a bootstrap bound of +3e-15) it is 0."""
     v = 100 * fraction
-    if v == 0:
+    if abs(fraction) <= EPS:
         return "0"
-    return f"{v:+.1f}" if abs(v) < 0.95 else f"{v:+.0f}"
+    return f"{v:+.1g}" if abs(v) < 0.95 else f"{v:+.0f}"
 
 
 def _test_text(x: dict) -> str:

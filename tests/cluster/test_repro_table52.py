@@ -220,10 +220,11 @@ def test_summarise_only_with_some_pairs_and_split_seed_groups(tmp_path, capsys):
 
 def test_small_differences_keep_their_sign_and_a_decimal():
     """One won greedy episode in a cell's last 10 evaluations is 1/600 of a 3-seed mean: its
-    difference reads -0.2 points, not "-0", and an exact 0 has no sign."""
+    difference reads -0.2 points, not "-0"; smaller ones keep a significant digit, and an
+    exact 0 has no sign."""
     from cluster.repro.table52_md import _points
 
     assert _points(-1 / 600) == "-0.2"
-    assert _points(0.0) == _points(-0.0) == "0"
-    assert _points(0.004) == "+0.4"
+    assert _points(0.0) == _points(-0.0) == _points(3e-17) == _points(-3e-17) == "0"
+    assert _points(0.004) == "+0.4" and _points(0.0004) == "+0.04"
     assert _points(0.38) == "+38" and _points(-0.12) == "-12"
