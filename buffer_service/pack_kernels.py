@@ -9,7 +9,10 @@ writes every section straight into its buffer. They produce the same bytes as th
 encoding they replace; `tests/buffer_service/test_packed.py` checks that against a numpy
 reference. `decode` reads an episode straight into a batch's arrays (one call per episode,
 where numpy took about fifteen; the batch is bit-identical to one made from the dense
-episodes, which the same tests check).
+episodes, which the same tests check). `check_bits` and `check_values` are the server's checks
+of an inserted episode (`PackedEpisode.check_layout` and `validate_contents`) in two compiled
+passes, where the numpy checks took about thirty calls (44 µs of CPU per 3m-sized insert,
+about 21 µs now); the same tests compare them with those numpy checks on corrupted buffers.
 
 Bit sections use numpy's packbits order (the first bit is a byte's most significant).
 """
@@ -261,3 +264,78 @@ def decode(
     for i in range(avail.size):
         avail[i] = _bit(data, offsets[10], i)
     return True
+
+
+# check_values' return codes, in the order `Episode.validate` reports them
+VALUES_OK, OBS_NONFINITE, STATE_NONFINITE, REWARD_NONFINITE, ACTION_RANGE, AVAIL_STUCK = range(6)
+NONFINITE_FIELDS = {OBS_NONFINITE: "obs", STATE_NONFINITE: "state", REWARD_NONFINITE: "reward"}
+OUT_OF_BOUNDS = 6  # the offsets pass the buffer's end (`check_layout` refuses such episodes)
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int64)
+
+
+@njit(cache=True, nogil=True)
+def check_bits(data: np.ndarray, offsets: np.ndarray, expect: np.ndarray) -> int:
+    """The index (0..5) of the first bit section of an episode's buffer (obs live, nonzero,
+    ones, then state's, at `offsets[4:10]`) whose set bits differ from `expect[k, 0]` or
+    which has a set padding bit after its `expect[k, 1]` used bits; -1 when every section
+    agrees, -2 when the offsets pass the buffer's end."""
+    if offsets[10] > data.size:
+        return -2
+    for k in range(6):
+        lo, hi = offsets[4 + k], offsets[5 + k]
+        total = 0
+        for p in range(lo, hi):
+            total += _POPCOUNT[data[p]]
+        pad = -expect[k, 1] % 8  # the lowest bits of the last byte (big-endian bit order)
+        if total != expect[k, 0] or (pad and hi > lo and data[hi - 1] & ((1 << pad) - 1)):
+            return k
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def _all_finite(data: np.ndarray, lo: int, hi: int) -> bool:
+    """Whether the little-endian float32s in data[lo:hi] are finite (exponent bits not all
+    set), read byte by byte: a buffer viewing a received frame need not be aligned."""
+    for p in range(lo, hi, 4):  # noqa: SIM110 (a plain loop is what numba compiles best)
+        if (data[p + 3] & 0x7F) == 0x7F and data[p + 2] >= 0x80:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def check_values(
+    data: np.ndarray, offsets: np.ndarray, t: int, n: int, a: int, n_actions: int
+) -> tuple[int, int]:
+    """`Episode.validate`'s checks of the values, on an episode's buffer (`fill`'s layout,
+    at `offsets`): (code, row) with code VALUES_OK or the first failing check's, and for
+    AVAIL_STUCK the first (step * N + agent) row with no available action."""
+    if offsets[11] > data.size:
+        return OUT_OF_BOUNDS, 0
+    for s in range(3):  # obs values, state values, reward
+        if not _all_finite(data, offsets[s], offsets[s + 1]):
+            return OBS_NONFINITE + s, 0
+    lo = offsets[3]
+    if a > 256:  # int32, little-endian
+        for i in range(t * n):
+            p = lo + 4 * i
+            v = np.int64(data[p]) | (np.int64(data[p + 1]) << 8) | (np.int64(data[p + 2]) << 16)
+            v |= np.int64(data[p + 3]) << 24
+            if v >= 2**31:
+                v -= 2**32
+            if v < 0 or v >= n_actions:
+                return ACTION_RANGE, 0
+    else:
+        for i in range(t * n):
+            if data[lo + i] >= n_actions:
+                return ACTION_RANGE, 0
+    if ((t + 1) * n * a + 7) >> 3 > offsets[11] - offsets[10]:
+        return OUT_OF_BOUNDS, 0
+    for r in range((t + 1) * n):
+        found = False
+        for j in range(a):
+            if _bit(data, offsets[10], r * a + j):
+                found = True
+                break
+        if not found:
+            return AVAIL_STUCK, r
+    return VALUES_OK, 0

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import mmap
 from dataclasses import dataclass, replace
+from itertools import accumulate
 
 import numpy as np
 
@@ -129,9 +130,7 @@ def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: Float
         *sc.bit_bytes(),
         _bits((t + 1) * n * a),
     )
-    out = np.zeros(len(sizes) + 1, np.int64)
-    np.cumsum(sizes, out=out[1:])
-    return out
+    return np.fromiter(accumulate(sizes, initial=0), np.int64, len(sizes) + 1)
 
 
 SECTIONS = (
@@ -194,6 +193,11 @@ class PackedEpisode:
         """name -> (offset, bytes) of every section of `data` (computed on each call: a
         cached copy would cost every stored episode a kilobyte)."""
         return section_layout(self.length, self.dims, self.obs_counts, self.state_counts)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """The start offsets of the `SECTIONS` in `data`, then its end (the kernels' form)."""
+        return _offsets(self.length, self.dims, self.obs_counts, self.state_counts)
 
     def _view(self, name: str, dtype=np.uint8, layout: dict | None = None) -> np.ndarray:
         off, size = (layout or self.layout)[name]
@@ -293,33 +297,22 @@ class PackedEpisode:
         sc.check("state")
         if self.data.dtype != np.uint8 or self.data.ndim != 1:
             raise EpisodeError("packed episode: data must be a flat uint8 array")
-        lay = self.layout
-        need = sum(size for _, size in lay.values())
-        if self.data.size != need:
+        from buffer_service import pack_kernels as kernels  # numba: only where checked
+
+        offsets = self.offsets
+        if self.data.size != offsets[-1]:
             raise EpisodeError(
-                f"packed episode: data holds {self.data.size} bytes, its counts need {need}"
+                f"packed episode: data holds {self.data.size} bytes, its counts need "
+                f"{int(offsets[-1])}"
             )
-        # the six bit sections are contiguous: one popcount pass, summed per section
-        names = [f"{p}_{k}" for p in ("obs", "state") for k in ("live", "nonzero", "ones")]
-        expect = self._bit_counts(oc) + self._bit_counts(sc)
-        start = lay[names[0]][0]
-        region = self.data[start : sum(lay[names[-1]])]
-        filled = [i for i, name in enumerate(names) if lay[name][1]]
-        sums = [0] * len(names)
-        if filled:
-            got = np.add.reduceat(
-                np.bitwise_count(region), [lay[names[i]][0] - start for i in filled], dtype=np.int64
-            )
-            for i, total in zip(filled, got.tolist(), strict=True):
-                sums[i] = total
-        for name, total, (set_bits, used) in zip(names, sums, expect, strict=True):
-            off, size = lay[name]
-            pad = -used % 8  # padding: the lowest bits of the last byte (big-endian order)
-            if total != set_bits or (
-                pad and size and int(self.data[off + size - 1]) & ((1 << pad) - 1)
-            ):
-                prefix, part = name.split("_")
-                raise EpisodeError(f"packed {prefix}: {part} bits disagree with its counts")
+        # the six bit sections: set bits and padding against the counts, in one compiled pass
+        expect = np.array(self._bit_counts(oc) + self._bit_counts(sc), np.int64)
+        bad = kernels.check_bits(self.data, offsets, expect)
+        if bad == -2:
+            raise EpisodeError("packed episode: its sections pass the end of its buffer")
+        if bad != -1:
+            prefix, part = SECTIONS[4 + bad].split("_")
+            raise EpisodeError(f"packed {prefix}: {part} bits disagree with its counts")
 
     @staticmethod
     def _bit_counts(c: FloatCounts) -> list[tuple[int, int]]:
@@ -353,25 +346,21 @@ class PackedEpisode:
         """`Episode.validate`'s checks of the values, made on the packed sections (the same
         errors, in the same order; zeros and the 1.0 entries are finite, avail_actions is
         bit-packed so only 0 and 1, filled and terminated cannot be wrong)."""
-        t, (n, _, _, a), lay = self.length, self.dims, self.layout
+        from buffer_service import pack_kernels as kernels  # numba: only where checked
+
+        t, (n, _, _, a) = self.length, self.dims
         if not 1 <= t <= schema.max_t:
             raise EpisodeError(f"episode length {t} outside 1..{schema.max_t}")
-        for name, section in (
-            ("obs", "obs_values"),
-            ("state", "state_values"),
-            ("reward", "reward"),
-        ):
-            if not np.all(np.isfinite(self._view(section, np.float32, lay))):
-                raise EpisodeError(f"field {name!r} holds NaN or inf")
-        actions = self._view("actions", self.action_dtype, lay)
-        if actions.size and (int(actions.min()) < 0 or int(actions.max()) >= schema.n_actions):
+        code, row = kernels.check_values(self.data, self.offsets, t, n, a, schema.n_actions)
+        if code == kernels.OUT_OF_BOUNDS:
+            raise EpisodeError("packed episode: its sections pass the end of its buffer")
+        if code in kernels.NONFINITE_FIELDS:
+            raise EpisodeError(f"field {kernels.NONFINITE_FIELDS[code]!r} holds NaN or inf")
+        if code == kernels.ACTION_RANGE:
             raise EpisodeError(f"field 'actions' has values outside 0..{schema.n_actions - 1}")
-        avail = np.unpackbits(self._view("avail", layout=lay), count=(t + 1) * n * a)
-        stuck = ~avail.reshape(t + 1, n, a).any(axis=-1)  # [T+1, N]: no action available
-        if np.any(stuck):
-            t_, agent = (int(i) for i in np.argwhere(stuck)[0])
+        if code == kernels.AVAIL_STUCK:
             raise EpisodeError(
-                f"field 'avail_actions': agent {agent} has no available action at step {t_}"
+                f"field 'avail_actions': agent {row % n} has no available action at step {row // n}"
             )
 
     # -- decoding -------------------------------------------------------------------------

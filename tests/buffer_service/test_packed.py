@@ -202,6 +202,86 @@ def test_decoding_bits_that_disagree_with_their_counts_is_refused_not_read_past(
             bad.unpack()
 
 
+def _numpy_reference_check(p: PackedEpisode, schema: EpisodeSchema) -> str | None:
+    """The first error of `check_layout` then `validate_contents`, as the numpy code that the
+    compiled checks replaced computed it (None: accepted)."""
+    lay = p.layout
+    if p.data.size != sum(size for _, size in lay.values()):
+        return "data holds"
+    names = [f"{x}_{k}" for x in ("obs", "state") for k in ("live", "nonzero", "ones")]
+    expect = p._bit_counts(p.obs_counts) + p._bit_counts(p.state_counts)
+    for name, (set_bits, used) in zip(names, expect, strict=True):
+        off, size = lay[name]
+        pad = -used % 8
+        total = int(np.unpackbits(p.data[off : off + size]).sum())
+        if total != set_bits or (pad and size and int(p.data[off + size - 1]) & ((1 << pad) - 1)):
+            prefix, part = name.split("_")
+            return f"packed {prefix}: {part} bits disagree with its counts"
+    t, (n, _, _, a) = p.length, p.dims
+    for name, section in (("obs", "obs_values"), ("state", "state_values"), ("reward", "reward")):
+        if not np.all(np.isfinite(p._view(section, np.float32, lay))):
+            return f"field {name!r} holds NaN or inf"
+    actions = p._view("actions", p.action_dtype, lay)
+    if actions.size and (int(actions.min()) < 0 or int(actions.max()) >= schema.n_actions):
+        return f"field 'actions' has values outside 0..{schema.n_actions - 1}"
+    avail = np.unpackbits(p._view("avail", layout=lay), count=(t + 1) * n * a)
+    stuck = ~avail.reshape(t + 1, n, a).any(axis=-1)
+    if np.any(stuck):
+        step, agent = (int(i) for i in np.argwhere(stuck)[0])
+        return f"field 'avail_actions': agent {agent} has no available action at step {step}"
+    return None
+
+
+def test_the_compiled_checks_agree_with_the_numpy_checks_they_replaced():
+    """Random byte flips in every section of packed episodes (narrow and int32 actions, with
+    and without the state, sparse and all-zero observations): `check_layout` and
+    `validate_contents` accept exactly what the numpy checks accepted, with the same error."""
+    wide = EpisodeSchema(n_agents=2, obs_dim=5, state_dim=3, n_actions=300, max_t=20)
+    cases = [(PackedEpisode.pack(smac_like(i, t)), BIG) for i, t in enumerate([1, 7, 33])]
+    cases.append((PackedEpisode.pack(smac_like(5, 20), state=False), BIG))
+    cases.append((PackedEpisode.pack(smac_like(6, 13, wide)), wide))
+    all_dead = smac_like(7, 9)
+    cases.append((PackedEpisode.pack(dataclasses.replace(all_dead, obs=0 * all_dead.obs)), BIG))
+    huge = smac_like(8, 5)  # the largest finite floats (exponent bits one short of inf's)
+    huge.obs[:, :, 3:5] = np.finfo(np.float32).max * np.array([1, -1], np.float32)
+    huge.reward[:] = np.float32(2.0**127)
+    cases.append((PackedEpisode.pack(huge), BIG))
+    rng = np.random.default_rng(0)
+    verdicts = set()
+    for p, schema in cases:
+        assert _numpy_reference_check(p, schema) is None
+        p.validate(schema)
+        for section, (off, size) in p.layout.items():
+            if not size:
+                continue
+            for trial in range(16):
+                data = p.data.copy()
+                for _ in range(rng.integers(1, 4)):  # one to three flipped bytes
+                    data[off + rng.integers(size)] ^= rng.integers(1, 256, dtype=np.uint8)
+                if trial % 2 and section in ("obs_values", "state_values", "reward"):
+                    # (random flips seldom make a NaN or inf: also write one somewhere)
+                    i = 4 * rng.integers(size // 4)
+                    poison = rng.choice([np.inf, -np.inf, np.nan]).astype(np.float32)
+                    data[off + i : off + i + 4] = np.frombuffer(poison.tobytes(), np.uint8)
+                if trial % 2 and section == "avail":  # no action available somewhere
+                    i = rng.integers(size)
+                    data[off + i : off + i + 2] = 0
+                bad = dataclasses.replace(p, data=data)
+                want = _numpy_reference_check(bad, schema)
+                try:
+                    bad.check_layout()
+                    bad.validate_contents(schema)
+                    got = None
+                except EpisodeError as e:
+                    got = str(e)
+                assert got == want, (section, got, want)
+                verdicts.add(want.split(":")[0].split(" holds")[0] if want else None)
+    # the flips reached every kind of check, and some flips stay valid (values, actions)
+    assert {None, "field 'obs'", "field 'state'", "field 'reward'", "packed obs"} <= verdicts
+    assert {"packed state", "field 'avail_actions'"} <= verdicts
+    assert any(v and "actions" in v for v in verdicts), verdicts
+
+
 def test_packed_length_and_layout_bits_are_checked():
     p = PackedEpisode.pack(smac_like(4, 60))
     with pytest.raises(EpisodeError, match=r"length 60 outside 1\.\.59"):
