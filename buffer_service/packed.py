@@ -413,3 +413,29 @@ class PackedEpisode:
 def dense_bytes(ep: Episode) -> int:
     """Bytes of `ep`'s arrays (today's `Episode`, the old layout)."""
     return sum(int(getattr(ep, f).nbytes) for f in EPISODE_ARRAYS)
+
+
+def warm_kernels() -> None:
+    """Load the kernels the buffer service calls, with the argument types it passes them.
+
+    A process's first kernel call loads numba and its compiled code (about 0.8 s on the
+    2-core machine, from numba's cache; a compile on a machine's first run). The service
+    checks every packed insert with `check_bits` and `check_values`, on arrays that view the
+    received frame (read-only) or own their bytes; it calls this before it listens, so that
+    its first insert does not wait. (Dense protocol-1 inserts, packed by the server from
+    read-only arrays, still load `counts` and `fill` for those types on first use.)
+    """
+    t, n, o, s, a = 1, 1, 1, 1, 2
+    ep = Episode(
+        obs=np.ones((t + 1, n, o), np.float32),
+        state=np.ones((t + 1, s), np.float32),
+        avail_actions=np.ones((t + 1, n, a), np.uint8),
+        actions=np.zeros((t, n), np.int64),
+        reward=np.zeros(t, np.float32),
+        terminated=np.zeros(t, bool),
+        filled=np.ones(t, bool),
+    )
+    packed = PackedEpisode.pack(ep)
+    framed = replace(packed, data=np.frombuffer(packed.data.tobytes(), np.uint8))  # read-only
+    for p in (packed, framed):
+        p.validate(EpisodeSchema(n, o, s, a, t))

@@ -10,6 +10,7 @@ import os
 import threading
 
 from buffer_service.config import BufferConfig
+from buffer_service.packed import warm_kernels
 from buffer_service.server import BufferServer
 
 log = logging.getLogger(__name__)
@@ -108,6 +109,7 @@ async def _run_main(cfg: BufferConfig, port_file: str | None) -> str | None:
     import json
     import signal
 
+    warm_kernels()  # before it listens: not in the first insert's or sample's time
     server = BufferServer(cfg)
     await server.start()
     stop = asyncio.Event()

@@ -379,3 +379,31 @@ def test_a_log_of_an_unknown_packing_is_refused_by_name(tmp_path):
     _storage_with(tmp_path, [make_episode(0, i, t=4) for i in range(3)], newer)
     with pytest.raises(StorageError, match="episode packing 2 is not one this build reads"):
         _restore(tmp_path)
+
+
+def test_warm_kernels_loads_what_an_insert_uses():
+    """`credit buffer serve` calls `warm_kernels` before it listens; afterwards the checks
+    of a packed insert (on a read-only frame or an owned buffer) find every kernel they call
+    loaded for their argument types (in a fresh process: nothing else warmed it)."""
+    import subprocess
+    import sys
+
+    code = """
+import dataclasses, numpy as np
+from buffer_service import pack_kernels as K
+from buffer_service.packed import PackedEpisode, warm_kernels
+from tests.buffer_service.test_packed import BIG, smac_like
+names = ("counts", "fill", "check_bits", "check_values")
+def loaded():
+    return {k: len(getattr(K, k).signatures) for k in names}
+warm_kernels()
+warm = loaded()
+assert all(warm.values()), warm
+p = PackedEpisode.pack(smac_like(1, 30))
+framed = dataclasses.replace(p, data=np.frombuffer(p.data.tobytes(), np.uint8))
+for q in (framed, p):
+    q.validate(BIG)
+assert loaded() == warm, (warm, loaded())
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
