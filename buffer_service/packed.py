@@ -117,11 +117,11 @@ def _uint32_rows(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, np.float32).view(np.uint32)
 
 
-def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts):
-    """The start offsets of the `SECTIONS`, then the buffer's end (the kernels' form of a
-    layout)."""
+def _sizes(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts):
+    """The byte sizes of the `SECTIONS` (Python ints: counts from the wire may ask for more
+    than int64 holds, which `check_layout` refuses by comparing their sum with the buffer)."""
     n, a = dims[0], dims[3]
-    sizes = (
+    return (
         4 * oc.values,
         4 * sc.values,
         4 * t,
@@ -130,6 +130,12 @@ def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: Float
         *sc.bit_bytes(),
         _bits((t + 1) * n * a),
     )
+
+
+def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts):
+    """The start offsets of the `SECTIONS`, then the buffer's end (the kernels' form of a
+    layout)."""
+    sizes = _sizes(t, dims, oc, sc)
     return np.fromiter(accumulate(sizes, initial=0), np.int64, len(sizes) + 1)
 
 
@@ -299,12 +305,12 @@ class PackedEpisode:
             raise EpisodeError("packed episode: data must be a flat uint8 array")
         from buffer_service import pack_kernels as kernels  # numba: only where checked
 
-        offsets = self.offsets
-        if self.data.size != offsets[-1]:
+        need = sum(_sizes(t, self.dims, oc, sc))
+        if self.data.size != need:
             raise EpisodeError(
-                f"packed episode: data holds {self.data.size} bytes, its counts need "
-                f"{int(offsets[-1])}"
+                f"packed episode: data holds {self.data.size} bytes, its counts need {need}"
             )
+        offsets = self.offsets
         # the six bit sections: set bits and padding against the counts, in one compiled pass
         expect = np.array(self._bit_counts(oc) + self._bit_counts(sc), np.int64)
         bad = kernels.check_bits(self.data, offsets, expect)

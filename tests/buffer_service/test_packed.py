@@ -302,6 +302,21 @@ def test_packed_length_and_layout_bits_are_checked():
         dataclasses.replace(p, data=data).check_layout()
 
 
+def test_counts_asking_for_more_bytes_than_int64_holds_are_refused_by_name():
+    """Counts within the wire's bounds (each below 2**40) whose sections would need more
+    than 2**63 bytes: refused as a layout error (it used to escape as an OverflowError,
+    which the server met with a dropped connection and a traceback in its log)."""
+    from buffer_service import codec
+    from buffer_service.codec import CodecError
+
+    wire = codec.episode_to_wire(PackedEpisode.pack(smac_like(1, 5)))
+    n, o = 2**38, 2**39  # live rows x features = 2**78 nonzero bits
+    wire.update(dims=[n, o, 0, 2], length=1)
+    wire.update(obs_counts=[2 * n, o, 2 * n, 2 * n, 0], state_counts=[2, 0, 0, 0, 0])
+    with pytest.raises(CodecError, match="its counts need"):
+        codec.episode_from_wire(wire)
+
+
 def test_large_episodes_are_stored_outside_the_heap_and_copied_out_of_frames():
     wide = EpisodeSchema(n_agents=24, obs_dim=80, state_dim=30, n_actions=9, max_t=60)
     ep = PackedEpisode.pack(smac_like(1, 60, wide))
