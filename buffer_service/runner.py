@@ -109,7 +109,7 @@ async def _run_main(cfg: BufferConfig, port_file: str | None) -> str | None:
     import json
     import signal
 
-    warm_kernels()  # before it listens: not in the first insert's or sample's time
+    warm_kernels()  # before it listens, so that the first insert does not wait for numba
     server = BufferServer(cfg)
     await server.start()
     stop = asyncio.Event()
