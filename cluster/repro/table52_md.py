@@ -70,7 +70,7 @@ def _verdict(claim: dict) -> str:
     if claim["verdict"] == "missing":
         text = "not yet answerable: not run " + ", ".join(claim["missing"])
     elif claim["verdict"] == "inconclusive":
-        text = "not yet answerable: an interval straddles the bound"
+        text = "inconclusive: an interval straddles the bound (more seeds could decide it)"
     else:
         text = claim["verdict"]
     if claim["under_min_steps"]:

@@ -197,6 +197,19 @@ def test_markdown_shows_ours_beside_theirs_and_cells_not_run(tmp_path):
     assert coma["under_min_steps"] == ["3s5z EM-CAC"]
 
 
+def test_a_claim_with_every_cell_but_an_undecided_comparison_reads_inconclusive(tmp_path):
+    """All cells run (the claim's two maps), one comparison's interval straddles the bound:
+    the verdict says inconclusive, not "not yet answerable" (nothing is left to run)."""
+    for m in ("skirmish/3s5z", "skirmish/MMM2"):
+        write_log(tmp_path, "emcac", m, [[0.6, 0.7, 0.8]] * 10)
+        write_log(tmp_path, "ecac", m, [[0.5, 0.6, 0.7]] * 10)
+        write_log(tmp_path, "cac", m, [[0.4, 0.6, 0.8]] * 10)  # E-CAC - CAC straddles 0
+    algos, maps = ["cac", "ecac", "emcac"], ["skirmish/3s5z", "skirmish/MMM2"]
+    t = table52.table52(load_evals(tmp_path, algos, maps), 200, 0)
+    chain = next(x for x in render(t).splitlines() if x.startswith("| EM-CAC >= E-CAC >= CAC"))
+    assert "| inconclusive: an interval straddles the bound (more seeds could decide it)" in chain
+
+
 @pytest.mark.slow  # 6 s at load 4 (two cores busy), most of it imports and the plots
 def test_summarise_only_with_some_pairs_and_split_seed_groups(tmp_path, capsys):
     """The command end to end on logs alone: a pair split over two seed groups, a pair that
