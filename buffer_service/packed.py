@@ -135,7 +135,11 @@ def _sizes(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCo
 def _offsets(t: int, dims: tuple[int, int, int, int], oc: FloatCounts, sc: FloatCounts):
     """The start offsets of the `SECTIONS`, then the buffer's end (the kernels' form of a
     layout)."""
-    sizes = _sizes(t, dims, oc, sc)
+    return _starts(_sizes(t, dims, oc, sc))
+
+
+def _starts(sizes: tuple[int, ...]) -> np.ndarray:
+    """Section sizes -> their start offsets, then the end (int64)."""
     return np.fromiter(accumulate(sizes, initial=0), np.int64, len(sizes) + 1)
 
 
@@ -305,12 +309,12 @@ class PackedEpisode:
             raise EpisodeError("packed episode: data must be a flat uint8 array")
         from buffer_service import pack_kernels as kernels  # numba: only where checked
 
-        need = sum(_sizes(t, self.dims, oc, sc))
-        if self.data.size != need:
+        sizes = _sizes(t, self.dims, oc, sc)
+        if self.data.size != sum(sizes):
             raise EpisodeError(
-                f"packed episode: data holds {self.data.size} bytes, its counts need {need}"
+                f"packed episode: data holds {self.data.size} bytes, its counts need {sum(sizes)}"
             )
-        offsets = self.offsets
+        offsets = _starts(sizes)  # (only now: the sum fits int64, as the buffer's size does)
         # the six bit sections: set bits and padding against the counts, in one compiled pass
         expect = np.array(self._bit_counts(oc) + self._bit_counts(sc), np.int64)
         bad = kernels.check_bits(self.data, offsets, expect)
