@@ -16,19 +16,21 @@ def lines(path: Path) -> list[dict]:
 
 
 def main(a: str, b: str) -> int:
+    names = sorted(
+        {p.name for p in Path(a).glob("*.jsonl")} | {p.name for p in Path(b).glob("*.jsonl")}
+    )
     differ = 0
-    for fa in sorted(Path(a).glob("*.jsonl")):
-        la, lb = lines(fa), lines(Path(b) / fa.name)
+    for name in names:
+        la, lb = (lines(Path(d) / name) if (Path(d) / name).exists() else [] for d in (a, b))
         if la == lb:
-            print(f"{fa.name}: {len(la)} evaluations, IDENTICAL")
+            print(f"{name}: {len(la)} evaluations, IDENTICAL")
             continue
         differ = 1
-        first = (
-            next((x, y) for x, y in zip(la, lb, strict=False) if x != y)
-            if len(la) == len(lb)
-            else (len(la), len(lb))
+        first = next(
+            (i for i, (x, y) in enumerate(zip(la, lb, strict=False)) if x != y),
+            min(len(la), len(lb)),
         )
-        print(f"{fa.name}: DIFFER, first: {first}")
+        print(f"{name}: DIFFER from evaluation {first} ({len(la)} and {len(lb)} evaluations)")
     return differ
 
 
