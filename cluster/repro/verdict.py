@@ -20,8 +20,10 @@ by its own `numpy.random.default_rng(seed)`, so the same logs give the same numb
   above 0; beside it rliable's probability of improvement P(qmix_ns > qmix) with its interval
   (`cluster.repro.aggregate.interval`).
 
-A statement whose pairs have not finished gets no number: its entry lists the pairs missing
-({env, algo, why}). The maps a slope wants are Table 5.1's and those the run planned; an
+A statement answers "yes", "no" or "undecided" only when every pair it wants has finished;
+until then it answers "not yet" and lists the pairs missing ({env, algo, why}), with, where
+the finished pairs already give an interval, that interval and what it reads as so far
+(`so_far`). The maps a slope wants are Table 5.1's and those the run planned; an
 answered slope lists the ones still missing beside its number.
 """
 
@@ -208,6 +210,8 @@ def _statements(slopes: dict, nostate: dict) -> dict:
             return {"answer": "not yet", "missing": missing}
         yes, no = RULES[rule]
         said = "yes" if yes(*entry["ci"]) else "no" if no(*entry["ci"]) else "undecided"
+        if missing:  # the finished pairs' reading, which the missing ones may change
+            return {"answer": "not yet", "so_far": said, "ci": entry["ci"], "missing": missing}
         return {"answer": said, "ci": entry["ci"], "missing": missing}
 
     out = {"rdn_flat": answer(slopes["rdn"], "flat")}
@@ -258,13 +262,12 @@ def _pairs_text(missing: list[dict]) -> str:
 
 def _answer(a: dict) -> str:
     n = len(a["missing"])
-    if a["answer"] == "not yet":
+    if "ci" not in a:
         return f"not yet ({n} pairs missing)"
-    return (
-        a["answer"]
-        + f" [{a['ci'][0]:.3f}, {a['ci'][1]:.3f}]"
-        + (f" ({n} pairs missing)" if n else "")
-    )
+    ci = f"[{a['ci'][0]:.3f}, {a['ci'][1]:.3f}]"
+    if a["answer"] == "not yet":
+        return f"not yet ({n} pairs missing; {a['so_far']} {ci} from the finished pairs)"
+    return f"{a['answer']} {ci}"
 
 
 def plot(v: dict, enemy: str | None, path: Path) -> None:

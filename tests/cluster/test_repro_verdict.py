@@ -11,7 +11,14 @@ import pytest
 from cluster.cli import main
 from cluster.repro.curves import load_evals
 from cluster.repro.redundancy import ENVS, write_figures
-from cluster.repro.verdict import FIGURE, Plan, bootstrap_interval, slope_statistic, verdict
+from cluster.repro.verdict import (
+    FIGURE,
+    Plan,
+    bootstrap_interval,
+    describe,
+    slope_statistic,
+    verdict,
+)
 
 T_MAX = 100_000
 EVERY = 5_000
@@ -135,11 +142,14 @@ def test_a_falling_slope_is_not_flat_and_a_wide_interval_is_undecided(tmp_path):
     v = verdict(load_evals(evals, algos, envs, until=T_MAX), plan, ENVS)
     rdn = v["slope"]["rdn"]
     assert rdn["slope"] == pytest.approx(-0.015, abs=1e-4) and rdn["falls"] and not rdn["flat"]
-    assert v["statements"]["rdn_flat"]["answer"] == "no"  # interval below -0.01
+    rdn_flat = v["statements"]["rdn_flat"]  # interval below -0.01, two maps missing
+    assert rdn_flat["answer"] == "not yet" and rdn_flat["so_far"] == "no"
+    assert rdn_flat["ci"] == rdn["ci"] and len(rdn_flat["missing"]) == 2
+    assert "rdn_flat: not yet (2 pairs missing; no [" in "\n".join(describe(v))
     assert [m["env"] for m in rdn["missing"]] == ["skirmish/bane_med", "skirmish/bane_small"]
     vdn = v["slope"]["vdn"]
     assert vdn["ci"][0] < -0.01 and vdn["ci"][1] > 0.01
-    assert v["statements"]["vdn_falls"]["answer"] == "undecided"
+    assert v["statements"]["vdn_falls"]["so_far"] == "undecided"
 
 
 def test_the_slope_interval_resamples_seeds_within_each_map():
@@ -164,7 +174,9 @@ def test_summarise_only_writes_the_verdict_and_its_figure(evals, capsys):
     assert v["slope"]["rdn"]["maps"] == ["skirmish/bane_vs_bane", "skirmish/bane_no_z"]
     assert (out / FIGURE).stat().st_size > 10_000
     printed = capsys.readouterr().out
-    assert "rdn_flat: yes" in printed and "qmix_falls: not yet" in printed
+    # RDN's two finished maps read as flat; bane_med and bane_small are still to run
+    assert "rdn_flat: not yet (2 pairs missing; yes [" in printed
+    assert "qmix_falls: not yet (3 pairs missing)\n" in printed
 
 
 def test_figures_without_a_plan_take_every_curve_as_finished(evals, tmp_path):
