@@ -25,14 +25,24 @@ log = logging.getLogger(__name__)
 PRECISIONS = ("float32", "bf16")
 
 
-def cpu_has_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Whether the CPU has bfloat16 instructions (Linux's flags: avx512_bf16 or amx_bf16)."""
+def cpu_model_and_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> tuple[str, set[str]]:
+    """The first CPU's model name and instruction-set flags as Linux lists them; ("", set())
+    where the file cannot be read."""
     try:
         text = cpuinfo.read_text()
     except OSError:
-        return False
-    flags = next((line for line in text.splitlines() if line.startswith("flags")), "")
-    return bool({"avx512_bf16", "amx_bf16"} & set(flags.split()))
+        return "", set()
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    return fields.get("model name", ""), set(fields.get("flags", "").split())
+
+
+def cpu_has_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Whether the CPU has bfloat16 instructions (Linux's flags: avx512_bf16 or amx_bf16)."""
+    return bool({"avx512_bf16", "amx_bf16"} & cpu_model_and_flags(cpuinfo)[1])
 
 
 def effective_precision(precision: str, device: torch.device) -> str:

@@ -8,11 +8,25 @@ import os
 import platform
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from buffer_service.episode import Episode, EpisodeSchema
+
+# CPU features that change what a benchmark measures: the vector width of the float32
+# kernels and whether bfloat16 products run natively (`learner.precision`)
+CPU_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile")
+
+
+def cpu_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, Any]:
+    """The CPU's model name and which of `CPU_FLAGS` it has; sessions do not always get the
+    same machine, so every benchmark records which CPU made it."""
+    from learner.precision import cpu_model_and_flags  # imports torch: only when asked
+
+    model, flags = cpu_model_and_flags(cpuinfo)
+    return {"cpu_model": model or "unknown", "cpu_flags": [f for f in CPU_FLAGS if f in flags]}
 
 
 def machine() -> dict[str, Any]:
@@ -21,6 +35,7 @@ def machine() -> dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "cpus": os.cpu_count(),
+        **cpu_info(),
         "numpy": np.__version__,
     }
     try:

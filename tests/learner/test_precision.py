@@ -8,7 +8,7 @@ from cluster.config.train import load_train_config
 from cluster.core import TrainerCore
 from cluster.process import configure
 from learner import precision
-from learner.precision import cpu_has_bf16, effective_precision
+from learner.precision import cpu_has_bf16, cpu_model_and_flags, effective_precision
 
 CPU = torch.device("cpu")
 
@@ -74,3 +74,15 @@ def test_every_other_algorithm_updates_under_bf16(algo):
     batch = record_batch("skirmish/3m", 4, 2)
     metrics, _, _ = one_update(algo, "bf16", batch)
     assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
+
+
+def test_cpu_model_and_flags_reads_the_first_cpu(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text(
+        "processor\t: 0\nmodel name\t: AMD EPYC 9R14\nflags\t\t: fpu avx2 avx512f avx512_bf16\n\n"
+        "processor\t: 1\nmodel name\t: other\nflags\t\t: fpu\n"
+    )
+    model, flags = cpu_model_and_flags(info)
+    assert model == "AMD EPYC 9R14"
+    assert {"avx2", "avx512f", "avx512_bf16"} <= flags and "amx_bf16" not in flags
+    assert cpu_model_and_flags(tmp_path / "missing") == ("", set())
