@@ -228,7 +228,11 @@ def cmd_curves(
     cfgs = [load_train_config(a, g, [], overrides) for g in envs for a in algos]
     t_max = sum(c.run.t_max for c in cfgs)
     keys = [(g, a) for g in envs for a in algos]
-    plan = Plan({k: c.run.t_max for k, c in zip(keys, cfgs, strict=True)}, args.bootstrap_reps)
+    plan = Plan(
+        {k: c.run.t_max for k, c in zip(keys, cfgs, strict=True)},
+        args.bootstrap_reps,
+        seeds=args.seeds,
+    )
     overrides += seed_group_overrides(args, cfgs)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)

@@ -4,9 +4,11 @@ the number of allied zerglings, VDN's and QMIX's fall as zerglings are added, an
 the state beats QMIX on bane_med and bane_no_z.
 
 A pair (map, algorithm) has finished when its evaluations reach the env steps it was to run
-(`Plan`); a pair with fewer than two seeds has no interval and counts as missing. Every interval
-is a percentile bootstrap (`scipy.stats.bootstrap`, `aggregate.REPS` draws, each interval drawn
-by its own `numpy.random.default_rng(seed)`, so the same logs give the same numbers):
+(`Plan`) with the seeds it was to run (a pair whose seed groups have not all run, say 2 of
+3, counts as missing); a pair with fewer than two seeds has no interval and counts as
+missing. Every interval is a percentile bootstrap (`scipy.stats.bootstrap`, `aggregate.REPS`
+draws, each interval drawn by its own `numpy.random.default_rng(seed)`, so the same logs give
+the same numbers):
 
 * final: per map and algorithm, each seed's final win rate (its mean over the last 10
   evaluations) and the mean over seeds with its interval;
@@ -57,11 +59,13 @@ RULES = {  # statement -> (yes, no) from its interval [lo, hi]; neither: "undeci
 @dataclass(frozen=True)
 class Plan:
     """What the run set out to do: each (env, algo) pair's env steps (run.t_max); the
-    bootstrap's draws and seed."""
+    bootstrap's draws and seed; `seeds`, the seeds every pair is to have (the summary's
+    `--seeds`; 0: any number)."""
 
     t_max: dict[tuple[str, str], int]
     reps: int = aggregate.REPS
     seed: int = aggregate.SEED
+    seeds: int = 0
 
     @classmethod
     def of_curves(cls, curves: list[Curve], reps: int = aggregate.REPS) -> Plan:
@@ -109,6 +113,8 @@ def _pairs(curves: list[Curve], plan: Plan) -> tuple[dict, dict]:
             why[key] = f"unfinished: {c.t_env[-1]} of {t_max} env steps"
         elif len(c.won[0]) < MIN_SEEDS:
             why[key] = f"{len(c.won[0])} seed (an interval needs {MIN_SEEDS})"
+        elif len(c.won[0]) < plan.seeds:
+            why[key] = f"{len(c.won[0])} of {plan.seeds} seeds"
         else:
             done[key] = c
     return done, why

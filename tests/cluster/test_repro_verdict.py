@@ -190,3 +190,24 @@ def test_figures_without_a_plan_take_every_curve_as_finished(evals, tmp_path):
         "skirmish/bane_vs_bane",
         "skirmish/bane_no_z",
     ]
+
+
+def test_a_pair_short_of_its_seed_groups_counts_as_missing(tmp_path):
+    # RDN on bane_small has 2 of its 3 seeds (a seed group still to run): its values are
+    # not in the verdict's finals or slope until the third has run
+    evals = tmp_path / "evals"
+    evals.mkdir()
+    for env in ("skirmish/bane_vs_bane", "skirmish/bane_no_z"):
+        _write_log(evals, env, "rdn", _line(0.4, 0.0, env))
+    _write_log(evals, "skirmish/bane_small", "rdn", [0.9, 0.95])
+    envs = ["skirmish/bane_vs_bane", "skirmish/bane_small", "skirmish/bane_no_z"]
+    curves = load_evals(evals, ["rdn"], envs, until=T_MAX)
+    plan = Plan({(g, "rdn"): T_MAX for g in envs}, reps=200, seeds=3)
+    v = verdict(curves, plan, ENVS)
+    assert v["missing"] == [{"env": "skirmish/bane_small", "algo": "rdn", "why": "2 of 3 seeds"}]
+    assert "skirmish/bane_small" not in v["final"]
+    assert v["slope"]["rdn"]["maps"] == ["skirmish/bane_vs_bane", "skirmish/bane_no_z"]
+    assert v["statements"]["rdn_flat"]["answer"] == "not yet"
+    # the same logs planned as 2 seeds per pair: bane_small has finished
+    v2 = verdict(curves, Plan(plan.t_max, reps=200, seeds=2), ENVS)
+    assert v2["final"]["skirmish/bane_small"]["rdn"]["per_seed"] == pytest.approx([0.9, 0.95])
