@@ -273,6 +273,18 @@ def summarise(curves: list[Curve]) -> dict:
     return out
 
 
+def headings(mine: list[Curve], env: str) -> tuple[str, dict[str, str]]:
+    """The curves figure's heading and each algo's legend label for one env's curves: "<env>:
+    median of N seeds" and the algo names when every algo has N seeds; otherwise each label
+    carries its algo's own count (a pair still running has fewer seeds than the others)."""
+    counts = {c.algo: len(c.won[0]) if c.won else 0 for c in mine}
+    if len(set(counts.values())) < 2:
+        n = next(iter(counts.values()), 0)
+        return f"{env}: median of {n} seeds, 25-75 percentile band", {a: a for a in counts}
+    labels = {a: f"{a} ({n} seed{'s' if n != 1 else ''})" for a, n in counts.items()}
+    return f"{env}: median of each algo's seeds (in the legend), 25-75 percentile band", labels
+
+
 def plot(
     curves: list[Curve],
     env: str,
@@ -283,7 +295,8 @@ def plot(
     """Median test win rate and test return against env steps, and win rate against wall
     time, with the 25-75 percentile band, one line per algo; then one panel per learner
     diagnostic (key, label) at each evaluation (means over seeds). `title` replaces the
-    default "<env>: median of N seeds" heading."""
+    default heading, "<env>: median of N seeds" when every algo has N seeds; when they
+    differ, each algo's legend entry carries its own count and the heading says so."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -295,6 +308,7 @@ def plot(
     fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False)
     flat = list(axes.flat)
     mine = [c for c in curves if c.env == env]
+    heading, labels = headings(mine, env)
     names = ["test win rate", "test return", "test win rate", *(lab for _, lab in diagnostics)]
     for c in mine:
         t = np.asarray(c.t_env)
@@ -308,7 +322,7 @@ def plot(
             if x is None:
                 continue
             r = np.asarray(data)
-            (line,) = ax.plot(x, np.median(r, axis=1), label=c.algo, color=color)
+            (line,) = ax.plot(x, np.median(r, axis=1), label=labels[c.algo], color=color)
             color = line.get_color()
             ax.fill_between(
                 x,
@@ -321,7 +335,6 @@ def plot(
             points = [(x, d[key]) for x, d in zip(c.t_env, c.learner, strict=False) if key in d]
             if points:
                 ax.plot(*zip(*points, strict=True), label=c.algo, color=color)
-    seeds = len(mine[0].won[0]) if mine else 0
     for i, ax in enumerate(flat):
         if i >= len(names):
             ax.set_visible(False)
@@ -333,7 +346,7 @@ def plot(
             ax.legend(loc="upper left")
     flat[0].set_ylim(-0.02, 1.02)
     flat[2].set_ylim(-0.02, 1.02)
-    fig.suptitle(title or f"{env}: median of {seeds} seeds, 25-75 percentile band")
+    fig.suptitle(title or heading)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
