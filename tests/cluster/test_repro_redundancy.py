@@ -128,18 +128,18 @@ def test_tiny_redundancy_run_writes_every_figure_summary_and_checkpoints(tmp_pat
     assert all(len(r["won"]) == 2 for r in rows)
 
 
-def _curve(algo: str, seeds: int) -> Curve:
+def _zero_curve(algo: str, seeds: int) -> Curve:
     return Curve(
         algo, "skirmish/bane_small", [0, 10], [[0.0] * seeds] * 2, [[0.0] * seeds] * 2, 1.0
     )
 
 
 def test_figure_heading_names_each_algos_seeds_when_they_differ():
-    same = headings([_curve("qmix", 3), _curve("rdn", 3)], "skirmish/bane_small")
+    same = headings([_zero_curve("qmix", 3), _zero_curve("rdn", 3)], "skirmish/bane_small")
     assert same == (
         "skirmish/bane_small: median of 3 seeds, 25-75 percentile band",
         {"qmix": "qmix", "rdn": "rdn"},
     )
-    title, labels = headings([_curve("qmix", 3), _curve("rdn", 2)], "skirmish/bane_small")
+    title, labels = headings([_zero_curve("qmix", 3), _zero_curve("rdn", 2)], "skirmish/bane_small")
     assert "median of each algo's seeds" in title and "3 seeds" not in title
     assert labels == {"qmix": "qmix (3 seeds)", "rdn": "rdn (2 seeds)"}
