@@ -4,9 +4,8 @@ TORCHINDUCTOR_COMPILE_THREADS=1 python results/bench/tried_2026-12-06/compile_gr
 
 One thread; E = 3 members of `EnsembleGRUCell` (hidden 64), ROWS rows per member (3m's batch:
 32 episodes x 3 agents = 96), STEPS steps, from a precomputed input projection. Thread CPU
-time, best of 5 (it ran beside training runs). Prints one JSON line: eager, one step compiled
-(dynamic rows) and the whole STEPS-step loop compiled (specialised to STEPS), and the thread
-time each compilation took.
+time, best of 5. Prints one JSON line: eager, one step compiled (dynamic rows) and the whole
+STEPS-step loop compiled (specialised to STEPS), and the thread time each compilation took.
 """
 
 import json
