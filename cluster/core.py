@@ -20,12 +20,15 @@ from pathlib import Path
 
 from buffer_service.episode import EpisodeBatch
 from cluster.checkpoint import Checkpointer, global_rng_state, set_global_rng_state
+from cluster.config.schema import ConfigError
 from cluster.config.train import TrainConfig
 from cluster.context import RunContext
 from cluster.evaluation import EvalRecord, Evaluator, make_test_envs
 from cluster.learning import Learning
 from cluster.progress import MetricMeans, Progress
 from learner.registry import Learner
+
+BEST_FOLDER, BEST_FILE = "best", "best.json"  # run.keep_best: beside checkpoint/, and inside it
 
 
 class TrainerCore:
@@ -40,8 +43,12 @@ class TrainerCore:
     Args:
         cfg: the run.
         n_ensemble: seed-batched members.
-        checkpoint_dir: where `periodic` checkpoints every run.save_interval (None: never).
+        checkpoint_dir: where `periodic` checkpoints every run.save_interval (None: never);
+            run.keep_best writes `best/` beside it.
         actors: rollout actors (the data plan's table sizes follow them).
+
+    Raises:
+        ConfigError: run.keep_best with n_ensemble > 1 or without a checkpoint_dir.
     """
 
     def __init__(
@@ -51,6 +58,11 @@ class TrainerCore:
         checkpoint_dir: Path | None = None,
         actors: int = 1,
     ):
+        if cfg.run.keep_best and (n_ensemble != 1 or checkpoint_dir is None):
+            raise ConfigError(
+                f"run.keep_best needs a run of one seed that checkpoints (got n_ensemble="
+                f"{n_ensemble}, checkpoint folder {checkpoint_dir}): it keeps one best policy"
+            )
         venv = make_test_envs(cfg, n_ensemble)
         self.ctx = RunContext.of(cfg, venv.info, n_ensemble, actors)
         self.learning = Learning(self.ctx)
@@ -61,6 +73,7 @@ class TrainerCore:
         self.episodes = 0
         self.last_test_t = -cfg.run.test_interval
         self.last_save_t = 0
+        self.best_score: float | None = None  # run.keep_best: the best evaluation's score
         self.started = time.monotonic()
         self.wall_offset = 0.0
 
@@ -83,8 +96,12 @@ class TrainerCore:
         return self.means.take()
 
     def evaluate(self) -> list[EvalRecord]:
-        """Greedy episodes for every member now; one record per member."""
-        return self.evaluator.evaluate(self.t_env, self.episodes, self.wall_s)
+        """Greedy episodes for every member now; one record per member (with run.keep_best,
+        `keep_if_best` sees it)."""
+        records = self.evaluator.evaluate(self.t_env, self.episodes, self.wall_s)
+        if self.ctx.run.keep_best:
+            self.keep_if_best(records[0])
+        return records
 
     def periodic(
         self,
@@ -112,6 +129,23 @@ class TrainerCore:
             (save or self.save)(folder)
 
     # -- checkpoints -------------------------------------------------------------------------
+    def keep_if_best(self, record: EvalRecord) -> bool:
+        """run.keep_best: write `best/` (learner, counters, `best.json` with the evaluation)
+        when `record` scores at least the best so far; a later policy wins a tie. Returns
+        whether it did."""
+        won = record.test_won_mean
+        score = record.test_return_mean if won is None else won
+        if self.best_score is not None and score < self.best_score:
+            return False
+        self.best_score = score
+        assert self.checkpointer.folder is not None  # checked in __init__
+
+        def evaluation(folder: Path) -> None:
+            write_json(folder / BEST_FILE, record.as_json())
+
+        self.save(self.checkpointer.folder.with_name(BEST_FOLDER), files=evaluation)
+        return True
+
     def save(
         self, path: Path, extra: dict | None = None, files: Callable[[Path], None] | None = None
     ) -> None:
@@ -131,6 +165,7 @@ class TrainerCore:
             "last_test_t": self.last_test_t,
             "last_save_t": self.last_save_t,
             "wall_s": self.wall_s,
+            "best_score": self.best_score,
             **global_rng_state(),
             **self.evaluator.state(),
             "metric_sums": self.means.state(),
@@ -145,6 +180,7 @@ class TrainerCore:
         self.t_env, self.episodes = state["t_env"], state["episodes"]
         self.last_test_t, self.last_save_t = state["last_test_t"], state["last_save_t"]
         self.wall_offset = state["wall_s"]
+        self.best_score = state.get("best_score")  # absent from checkpoints of earlier commits
         self.started = time.monotonic()
         set_global_rng_state(state)
         self.evaluator.load_state(state)

@@ -147,7 +147,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         summary["actor_restarts"] = trainer.restarts
         summary["buffer_restarts"] = trainer.buffer.restarts
     write_json(out / "summary.json", summary)
-    print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/")
+    kept = ", best/" if cfg.run.keep_best else ""
+    print(f"results in {out}: summary.json, metrics.jsonl, config.yaml, checkpoint/{kept}")
     return 0
 
 

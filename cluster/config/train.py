@@ -111,6 +111,12 @@ class RunConfig:
         test_interval: env steps between greedy evaluations.
         test_episodes: greedy episodes per evaluation.
         save_interval: env steps between checkpoints (0: only at the end).
+        keep_best: after each greedy evaluation that scores at least the best so far (its
+            win rate; its mean return on envs without a win), write the learner and the
+            counters to `best/` beside the run's `checkpoint/`, with that evaluation in
+            `best/best.json` (model selection on the training's own evaluations; judge the
+            kept policy on fresh episodes, as `credit demo` does). Needs a run of one seed
+            (n_ensemble = 1) that checkpoints.
         device: torch device of the learner ("cpu", "cuda", "cuda:1", ...). Rollout and
             evaluation workers always act on the CPU.
         acting_weights: what the learner process's own workers (local-mode rollouts, greedy
@@ -146,6 +152,7 @@ class RunConfig:
     test_interval: int = 10_000
     test_episodes: int = 20
     save_interval: int = 0
+    keep_best: bool = False
     device: str = "cpu"
     acting_weights: Literal["auto", "shared", "copy"] = "auto"
     torch_threads: int = 1

@@ -22,20 +22,36 @@ from cluster.progress import Progress
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_the_report_evaluates_the_saved_policy_and_writes_curve_and_gif(tmp_path, capsys):
+def test_the_report_evaluates_the_saved_policies_and_writes_curve_and_gif(tmp_path, capsys):
     out = tmp_path / "run"
     argv = ["train", "--algo", "qmix", "--env", "skirmish/3m", "--t-max", "200", "--out", str(out)]
-    argv += ["--set", "run.num_envs=2", "--set", "run.test_interval=100"]
+    argv += ["--set", "run.num_envs=2", "--set", "run.test_interval=60"]
     argv += ["--set", "run.test_episodes=2", "--set", "replay.batch_size=4"]
+    argv += ["--set", "run.keep_best=true"]
     assert main(argv) == 0
     report = write_report(out, episodes=4, gif_tries=1)
-    assert report.episodes == 4 and 0.0 <= report.win_rate <= 1.0
-    assert report.t_env == json.loads((out / "summary.json").read_text())["t_env"]
+    assert report.episodes == 4 and report.evaluation_episodes == 2
+    assert report.final.t_env == json.loads((out / "summary.json").read_text())["t_env"]
+    assert report.final.folder == out / "checkpoint" and 0.0 <= report.final.win_rate <= 1.0
+    kept = json.loads((out / "best" / "best.json").read_text())
+    assert report.best is not None and report.best_evaluation == kept
+    assert report.shown is report.best and report.best.t_env == kept["t_env"] <= report.final.t_env
     assert report.curve_png == out / "learning_curve.png"
     with Image.open(report.curve_png) as png:
         assert png.format == "PNG" and png.size[0] > 500
     with Image.open(report.gif) as gif:
         assert gif.format == "GIF" and gif.n_frames >= 5  # t = 0, steps, the closing frames
+
+
+def test_without_a_kept_policy_the_report_shows_the_final_one(tmp_path):
+    out = tmp_path / "run"
+    argv = ["train", "--algo", "qmix", "--env", "skirmish/3m", "--t-max", "100", "--out", str(out)]
+    argv += ["--set", "run.num_envs=2", "--set", "run.test_episodes=2"]
+    argv += ["--set", "replay.batch_size=4"]
+    assert main(argv) == 0
+    report = write_report(out, episodes=2, gif_tries=1)
+    assert report.best is None and report.best_evaluation is None
+    assert report.shown is report.final
 
 
 def test_progress_lines_give_env_steps_win_rate_and_throughput(caplog):
@@ -101,4 +117,5 @@ def test_the_default_demo_learns_3m(tmp_path):
     0.8 and a GIF of a won episode (about 3 minutes of training on 2 cores)."""
     done, out = run_demo(tmp_path, "--no-wait")
     assert printed_win_rate(done.stdout) >= 0.8
+    assert "with the policy kept at its best greedy evaluation during training" in done.stdout
     assert f"the trained policy winning: {out / 'policy.gif'}" in done.stdout
