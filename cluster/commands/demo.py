@@ -150,8 +150,14 @@ def _print_report(args: argparse.Namespace, out: Path, report: demo_report.DemoR
         f"{shown.win_rate:.2f} ({round(shown.win_rate * n)} of {n} fresh episodes, mean return "
         f"{shown.return_mean:.1f})"
     )
-    if report.best is not None and report.best_evaluation is not None:
-        kept = report.best_evaluation
+    kept = report.best_evaluation
+    if report.best is not None and kept is not None and report.best.t_env == final.t_env:
+        line += (
+            f" after {final.t_env:,} env steps; its evaluation at the end of training "
+            f"({kept.get('test_won_mean', 0.0):.2f} over {report.evaluation_episodes} episodes) "
+            f"was its best, so the kept policy is the final one."
+        )
+    elif report.best is not None and kept is not None:
         line += (
             f" with the policy kept at its best greedy evaluation during training "
             f"({shown.t_env:,} env steps: win rate {kept.get('test_won_mean', 0.0):.2f} "
@@ -167,9 +173,10 @@ def _print_report(args: argparse.Namespace, out: Path, report: demo_report.DemoR
     print(f"  learning curve:             {report.curve_png}")
     what = "the trained policy winning:" if report.gif_won else "the trained policy (lost):"
     print(f"  {what:<27} {report.gif}")
+    kept_folder = ", best/ (the kept one)" if report.best is not None else ""
     print(
         f"  everything else in {out}/: config.yaml, metrics.jsonl, summary.json, checkpoint/ "
-        f"(the final policy), best/ (the kept one)"
+        f"(the final policy){kept_folder}"
     )
 
 

@@ -3,6 +3,7 @@ whole command on the local multi-process cluster."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -16,7 +17,8 @@ import pytest
 from PIL import Image
 
 from cluster.cli import main
-from cluster.dashboard.report import write_report
+from cluster.commands import demo
+from cluster.dashboard.report import DemoReport, PolicyResult, write_report
 from cluster.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -52,6 +54,46 @@ def test_without_a_kept_policy_the_report_shows_the_final_one(tmp_path):
     report = write_report(out, episodes=2, gif_tries=1)
     assert report.best is None and report.best_evaluation is None
     assert report.shown is report.final
+
+
+def _report(tmp_path: Path, best_t: int | None, best_won: float = 0.9) -> DemoReport:
+    (tmp_path / "summary.json").write_text(json.dumps({"wall_s": 80.0}))
+    (tmp_path / "metrics.jsonl").write_text(json.dumps({"wall_s": 12.0}) + "\n")
+    final = PolicyResult(tmp_path / "checkpoint", 60_100, win_rate=0.78, return_mean=17.4)
+    best = None if best_t is None else PolicyResult(tmp_path / "best", best_t, 0.97, 19.6)
+    kept = None if best_t is None else {"t_env": best_t, "test_won_mean": best_won}
+    return DemoReport(final, best, kept, 20, 100, tmp_path / "c.png", tmp_path / "p.gif", True)
+
+
+@pytest.mark.parametrize(
+    "best_t, expected",
+    [
+        (
+            58_000,
+            "a greedy win rate of 0.97 (97 of 100 fresh episodes, mean return 19.6) with the "
+            "policy kept at its best greedy evaluation during training (58,000 env steps: win "
+            "rate 0.90 over 20 episodes); the final policy, after 60,100 env steps, won 78 of "
+            "100. Training took 80 s",
+        ),
+        (
+            60_100,
+            "a greedy win rate of 0.97 (97 of 100 fresh episodes, mean return 19.6) after "
+            "60,100 env steps; its evaluation at the end of training (0.90 over 20 episodes) "
+            "was its best, so the kept policy is the final one. Training",
+        ),
+        (
+            None,
+            "a greedy win rate of 0.78 (78 of 100 fresh episodes, mean return 17.4) after "
+            "60,100 env steps. Training took 80 s with 2 Ray rollout actors (12 s",
+        ),
+    ],
+)
+def test_the_closing_lines_name_the_kept_and_the_final_policy(tmp_path, capsys, best_t, expected):
+    args = argparse.Namespace(algo="qmix", env="skirmish/3m", actors=2)
+    demo._print_report(args, tmp_path, _report(tmp_path, best_t))
+    printed = capsys.readouterr().out
+    assert expected in printed.replace("\n", " ")
+    assert ("best/ (the kept one)" in printed) == (best_t is not None)
 
 
 def test_progress_lines_give_env_steps_win_rate_and_throughput(caplog):
@@ -117,5 +159,6 @@ def test_the_default_demo_learns_3m(tmp_path):
     0.8 and a GIF of a won episode (about 3 minutes of training on 2 cores)."""
     done, out = run_demo(tmp_path, "--no-wait")
     assert printed_win_rate(done.stdout) >= 0.8
-    assert "with the policy kept at its best greedy evaluation during training" in done.stdout
+    kept = ("with the policy kept at its best greedy evaluation", "the kept policy is the final")
+    assert any(words in done.stdout for words in kept), done.stdout
     assert f"the trained policy winning: {out / 'policy.gif'}" in done.stdout
