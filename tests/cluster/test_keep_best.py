@@ -17,10 +17,10 @@ from cluster.process import configure
 SETS = ["run.test_interval=50", "replay.batch_size=4", "run.keep_best=true"]
 
 
-def _trainer(tmp_path, *sets: str, n_ensemble: int = 1) -> LocalTrainer:
+def _trainer(tmp_path, *sets: str) -> LocalTrainer:
     cfg = load_train_config("vdn", "matrix/two_step", [], [*SETS, *sets])
     configure(cfg.run)
-    return LocalTrainer(cfg, n_ensemble, checkpoint_dir=tmp_path / "checkpoint")
+    return LocalTrainer(cfg, checkpoint_dir=tmp_path / "checkpoint")
 
 
 def _record(t_env: int, won: float | None, ret: float = 0.0) -> EvalRecord:
