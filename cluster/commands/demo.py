@@ -151,21 +151,21 @@ def _print_report(args: argparse.Namespace, out: Path, report: demo_report.DemoR
         f"{shown.return_mean:.1f})"
     )
     kept = report.best_evaluation
-    if report.best is not None and kept is not None and report.best.t_env == final.t_env:
-        line += (
-            f" after {final.t_env:,} env steps; its evaluation at the end of training "
-            f"({kept.get('test_won_mean', 0.0):.2f} over {report.evaluation_episodes} episodes) "
-            f"was its best, so the kept policy is the final one."
-        )
-    elif report.best is not None and kept is not None:
-        line += (
-            f" with the policy kept at its best greedy evaluation during training "
-            f"({shown.t_env:,} env steps: win rate {kept.get('test_won_mean', 0.0):.2f} "
-            f"over {report.evaluation_episodes} episodes); the final policy, after "
-            f"{final.t_env:,} env steps, won {round(final.win_rate * n)} of {n}."
-        )
-    else:
+    if report.best is None or kept is None:
         line += f" after {final.t_env:,} env steps."
+    else:
+        score = f"{kept.get('test_won_mean', 0.0):.2f} over {report.evaluation_episodes} episodes"
+        if report.best.t_env == final.t_env:
+            line += (
+                f" after {final.t_env:,} env steps; its evaluation at the end of training "
+                f"({score}) was its best, so the kept policy is the final one."
+            )
+        else:
+            line += (
+                f" with the policy kept at its best greedy evaluation during training "
+                f"({shown.t_env:,} env steps: win rate {score}); the final policy, after "
+                f"{final.t_env:,} env steps, won {round(final.win_rate * n)} of {n}."
+            )
     print(
         f"{line} Training took {summary['wall_s']:.0f} s with {args.actors} Ray rollout actors "
         f"({first['wall_s']:.0f} s of it starting the actors, up to the first evaluation)."
