@@ -8,6 +8,8 @@ import importlib
 import logging
 import sys
 
+from cluster.errors import Terminated
+
 log = logging.getLogger("credit")
 
 DESCRIPTION = (
@@ -83,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         return int(args.func(args) or 0)
+    except Terminated:  # SIGTERM to a process with a private Ray instance (`ray_cluster`)
+        print("credit: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("credit: interrupted", file=sys.stderr)
         return 130

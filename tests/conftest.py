@@ -1,7 +1,18 @@
-"""The test tiers (tests/README.md): after a run of the default tier, name the tests that took
-long enough to belong in `make test-slow`, so the rule is seen where it is broken."""
+"""Session-wide hooks.
+
+* The test tiers (tests/README.md): after a run of the default tier, name the tests that took
+  long enough to belong in `make test-slow`, so the rule is seen where it is broken.
+* Processes left behind: every process the tests start inherits `MARKER` in its environment;
+  at the end of the session those still running (a Ray agent orphaned by a killed driver, a
+  server a test forgot) are killed and named, so that a test run never leaves work behind."""
 
 from __future__ import annotations
+
+import os
+import signal
+import time
+import uuid
+from pathlib import Path
 
 import pytest
 
@@ -21,9 +32,57 @@ def pytest_runtest_makereport(item, call):
 
 
 def pytest_terminal_summary(terminalreporter):
+    if _left:
+        terminalreporter.section("processes the tests left running (killed)")
+        for pid, cmd in _left:
+            terminalreporter.write_line(f"pid {pid}: {cmd[:160]}")
     long = sorted(((s, n) for n, s in _durations.items() if s > REPORT_OVER_S), reverse=True)
     if not long:
         return
     terminalreporter.section("tests that belong in the slow tier (tests/README.md)")
     for seconds, nodeid in long:
         terminalreporter.write_line(f"{seconds:6.1f} s  {nodeid}  (not marked slow)")
+
+
+pytest_plugins = ["pytester"]  # tests/test_leftover_processes.py runs a test run of its own
+
+MARKER = "CREDIT_TEST_SESSION"
+# How long processes still shutting down (ray.shutdown's own SIGTERM, then SIGKILL) get.
+GRACE_S = float(os.environ.get("CREDIT_TEST_REAP_GRACE_S", "10"))
+_left: list[tuple[int, str]] = []
+
+
+def pytest_configure(config):
+    os.environ.setdefault(MARKER, f"{os.getpid()}-{uuid.uuid4().hex}")
+
+
+def marked_processes(value: str) -> dict[int, str]:
+    """pid -> command line of the processes other than this one whose environment holds
+    MARKER=value (processes of other users cannot be read, and are not ours)."""
+    needle = f"{MARKER}={value}".encode()
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if needle in (entry / "environ").read_bytes().split(b"\0"):
+                cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                found[int(entry.name)] = cmd.strip() or f"[pid {entry.name}]"
+        except OSError:  # exited meanwhile, or not ours
+            continue
+    return found
+
+
+def pytest_sessionfinish(session):
+    value = os.environ.get(MARKER, "")
+    if not value.startswith(f"{os.getpid()}-") or not Path("/proc").is_dir():
+        return  # a pytest started by a test (the marker is the outer session's), or not Linux
+    deadline = time.monotonic() + GRACE_S
+    while (left := marked_processes(value)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for pid, cmd in sorted(left.items()):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            continue
+        _left.append((pid, cmd))

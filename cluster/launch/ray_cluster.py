@@ -18,10 +18,12 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from cluster.errors import Terminated
 from cluster.metrics.discovery import default_state_dir
 
 log = logging.getLogger(__name__)
@@ -346,6 +348,21 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+def _terminate_like_interrupt() -> None:
+    """After `ray.init` started a private instance: SIGTERM to this process raises
+    `Terminated` (a KeyboardInterrupt), so that it stops as after Ctrl-C, its `finally`
+    blocks and `ray.shutdown` included. `ray.init` leaves a C++ handler that prints a stack
+    and ends the process at once, and a driver ended so leaves the raylet's dashboard and
+    runtime-env agents running, orphaned. Only from the main thread (signal handlers can be
+    set nowhere else)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_terminated)
+
+
 def connect(address: str | None, num_cpus: int, runtime_env: dict | None = None) -> str:
     """Connect this driver to `address` ("auto" = the recorded cluster, else Ray's own
     discovery; or "host:port"), or with no address start a private local Ray instance on
@@ -400,4 +417,5 @@ def connect(address: str | None, num_cpus: int, runtime_env: dict | None = None)
             runtime_env=runtime_env,
             _node_ip_address=LOOPBACK,
         )
+    _terminate_like_interrupt()
     return f"started a local Ray instance with {num_cpus} CPUs on {LOOPBACK}"

@@ -34,3 +34,22 @@ def wait_for(
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(interval_s)
+
+
+def session_members(sid: int) -> dict[int, str]:
+    """pid -> command line of the live processes in session `sid` (Linux /proc; a process
+    started with `start_new_session=True` leads the session of its own pid, and what it
+    starts, Ray's processes included, stays in it)."""
+    members = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # exited meanwhile, or not ours
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[3]) == sid and fields[0] != "Z":
+            members[int(entry.name)] = cmd.strip()
+    return members
