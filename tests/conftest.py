@@ -3,8 +3,9 @@
 * The test tiers (tests/README.md): after a run of the default tier, name the tests that took
   long enough to belong in `make test-slow`, so the rule is seen where it is broken.
 * Processes left behind: every process the tests start inherits `MARKER` in its environment;
-  at the end of the session those still running (a Ray agent orphaned by a killed driver, a
-  server a test forgot) are killed and named, so that a test run never leaves work behind."""
+  at the end of the session those still running whose parent has gone (a Ray agent orphaned
+  by a killed driver, a server whose launcher exited without stopping it) are killed and
+  named, so that a test run never leaves work behind."""
 
 from __future__ import annotations
 
@@ -56,21 +57,36 @@ def pytest_configure(config):
     os.environ.setdefault(MARKER, f"{os.getpid()}-{uuid.uuid4().hex}")
 
 
-def marked_processes(value: str) -> dict[int, str]:
-    """pid -> command line of the processes other than this one whose environment holds
-    MARKER=value (processes of other users cannot be read, and are not ours)."""
+def marked_processes(value: str) -> dict[int, tuple[int, str]]:
+    """pid -> (parent pid, command line) of the processes other than this one whose
+    environment holds MARKER=value (processes of other users cannot be read, and are not
+    ours)."""
     needle = f"{MARKER}={value}".encode()
     found = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
-            if needle in (entry / "environ").read_bytes().split(b"\0"):
-                cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-                found[int(entry.name)] = cmd.strip() or f"[pid {entry.name}]"
+            if needle not in (entry / "environ").read_bytes().split(b"\0"):
+                continue
+            stat = (entry / "stat").read_text()
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
         except OSError:  # exited meanwhile, or not ours
             continue
+        ppid = int(stat[stat.rindex(")") + 2 :].split()[1])
+        found[int(entry.name)] = (ppid, cmd.strip() or f"[pid {entry.name}]")
     return found
+
+
+def left_behind(procs: dict[int, tuple[int, str]], me: int) -> dict[int, str]:
+    """The processes of `procs` (from `marked_processes`) that lost the parent that started
+    them (it exited, so they belong to init now), with everything below them. This process's
+    own children are not among them: they are its helpers (multiprocessing's resource
+    tracker, wandb's service), which end when it ends."""
+    left = {pid for pid, (ppid, _) in procs.items() if ppid != me and ppid not in procs}
+    while more := {pid for pid, (ppid, _) in procs.items() if ppid in left} - left:
+        left |= more
+    return {pid: procs[pid][1] for pid in sorted(left)}
 
 
 def pytest_sessionfinish(session):
@@ -78,9 +94,11 @@ def pytest_sessionfinish(session):
     if not value.startswith(f"{os.getpid()}-") or not Path("/proc").is_dir():
         return  # a pytest started by a test (the marker is the outer session's), or not Linux
     deadline = time.monotonic() + GRACE_S
-    while (left := marked_processes(value)) and time.monotonic() < deadline:
+    while (left := left_behind(marked_processes(value), os.getpid())) and (
+        time.monotonic() < deadline
+    ):
         time.sleep(0.5)
-    for pid, cmd in sorted(left.items()):
+    for pid, cmd in left.items():
         try:
             os.kill(pid, signal.SIGKILL)
         except OSError:
