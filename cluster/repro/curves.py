@@ -285,6 +285,14 @@ def headings(mine: list[Curve], env: str) -> tuple[str, dict[str, str]]:
     return f"{env}: median of each algo's seeds (in the legend), 25-75 percentile band", labels
 
 
+def logged(
+    mine: list[Curve], diagnostics: tuple[tuple[str, str], ...]
+) -> tuple[tuple[str, str], ...]:
+    """The (key, label) diagnostics that at least one of `mine` logged (RDN's critic panels
+    stay out of a figure without RDN)."""
+    return tuple((k, lab) for k, lab in diagnostics if any(k in d for c in mine for d in c.learner))
+
+
 def plot(
     curves: list[Curve],
     env: str,
@@ -294,20 +302,22 @@ def plot(
 ) -> None:
     """Median test win rate and test return against env steps, and win rate against wall
     time, with the 25-75 percentile band, one line per algo; then one panel per learner
-    diagnostic (key, label) at each evaluation (means over seeds). `title` replaces the
-    default heading, "<env>: median of N seeds" when every algo has N seeds; when they
-    differ, each algo's legend entry carries its own count and the heading says so."""
+    diagnostic (key, label) that some algo logged, at each evaluation (means over seeds).
+    `title` replaces the default heading, "<env>: median of N seeds" when every algo has N
+    seeds; when they differ, each algo's legend entry carries its own count and the heading
+    says so."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    mine = [c for c in curves if c.env == env]
+    diagnostics = logged(mine, diagnostics)
     panels = 3 + len(diagnostics)
     cols = 3 if panels > 4 else 2
     rows = -(-panels // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False)
     flat = list(axes.flat)
-    mine = [c for c in curves if c.env == env]
     heading, labels = headings(mine, env)
     names = ["test win rate", "test return", "test win rate", *(lab for _, lab in diagnostics)]
     for c in mine:

@@ -1,13 +1,14 @@
 """`credit repro redundancy`: the seed's Figs. 5.6-5.9 and the final-win-rate chart from
 curves, the generated maps of --zerglings, and a tiny end-to-end run."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from cluster.cli import main
-from cluster.repro.curves import Curve, headings
+from cluster.repro.curves import Curve, headings, logged
 from cluster.repro.redundancy import final_stats, ordered, write_figures, zergling_envs
 
 
@@ -143,3 +144,14 @@ def test_figure_heading_names_each_algos_seeds_when_they_differ():
     title, labels = headings([_zero_curve("qmix", 3), _zero_curve("rdn", 2)], "skirmish/bane_small")
     assert "median of each algo's seeds" in title and "3 seeds" not in title
     assert labels == {"qmix": "qmix (3 seeds)", "rdn": "rdn (2 seeds)"}
+
+
+def test_a_figure_leaves_out_the_diagnostics_no_algo_logged():
+    from cluster.repro.smac import DIAGNOSTICS
+
+    value = [{"q_taken_mean": 1.0, "loss_td": 0.5}, {"q_taken_mean": 2.0}]
+    qmix = dataclasses.replace(_zero_curve("qmix", 3), learner=value)
+    assert [k for k, _ in logged([qmix], DIAGNOSTICS)] == ["q_taken_mean", "loss_td"]
+    critic = [{"q_tot_mean": 1.0, "loss_critic": 0.1}, {}]
+    rdn = dataclasses.replace(_zero_curve("rdn", 3), learner=critic)
+    assert logged([qmix, rdn], DIAGNOSTICS) == DIAGNOSTICS
