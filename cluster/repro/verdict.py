@@ -268,11 +268,12 @@ def _pairs_text(missing: list[dict]) -> str:
 
 def _answer(a: dict) -> str:
     n = len(a["missing"])
+    missing = f"{n} pair{'' if n == 1 else 's'} missing"
     if "ci" not in a:
-        return f"not yet ({n} pairs missing)"
+        return f"not yet ({missing})"
     ci = f"[{a['ci'][0]:.3f}, {a['ci'][1]:.3f}]"
     if a["answer"] == "not yet":
-        return f"not yet ({n} pairs missing; {a['so_far']} {ci} from the finished pairs)"
+        return f"not yet ({missing}; {a['so_far']} {ci} from the finished pairs)"
     return f"{a['answer']} {ci}"
 
 

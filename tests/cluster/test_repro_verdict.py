@@ -211,3 +211,12 @@ def test_a_pair_short_of_its_seed_groups_counts_as_missing(tmp_path):
     # the same logs planned as 2 seeds per pair: bane_small has finished
     v2 = verdict(curves, Plan(plan.t_max, reps=200, seeds=2), ENVS)
     assert v2["final"]["skirmish/bane_small"]["rdn"]["per_seed"] == pytest.approx([0.9, 0.95])
+
+
+def test_the_printed_answer_counts_missing_pairs_in_words():
+    from cluster.repro.verdict import _answer
+
+    one = {"env": "skirmish/bane_med", "algo": "qmix", "why": "not run"}
+    assert _answer({"missing": [one]}) == "not yet (1 pair missing)"
+    so_far = {"missing": [one, one], "ci": [0.1, 0.2], "answer": "not yet", "so_far": "no"}
+    assert _answer(so_far) == "not yet (2 pairs missing; no [0.100, 0.200] from the finished pairs)"
