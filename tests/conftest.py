@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from cluster.launch.ray_cluster import Proc, process_table, with_descendants
+
 # A default-tier test this long on the project's 2-core machine belongs in the slow tier
 # (tests/README.md). Reported, never asserted: timings on a shared machine drift.
 REPORT_OVER_S = 20.0
@@ -57,36 +59,29 @@ def pytest_configure(config):
     os.environ.setdefault(MARKER, f"{os.getpid()}-{uuid.uuid4().hex}")
 
 
-def marked_processes(value: str) -> dict[int, tuple[int, str]]:
-    """pid -> (parent pid, command line) of the processes other than this one whose
-    environment holds MARKER=value (processes of other users cannot be read, and are not
-    ours)."""
+def marked_processes(value: str) -> dict[int, Proc]:
+    """pid -> `Proc` of the processes other than this one whose environment holds
+    MARKER=value (processes of other users cannot be read, and are not ours)."""
     needle = f"{MARKER}={value}".encode()
+    table = process_table()
     found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
+    for pid, proc in table.items():
         try:
-            if needle not in (entry / "environ").read_bytes().split(b"\0"):
-                continue
-            stat = (entry / "stat").read_text()
-            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            marked = needle in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
         except OSError:  # exited meanwhile, or not ours
             continue
-        ppid = int(stat[stat.rindex(")") + 2 :].split()[1])
-        found[int(entry.name)] = (ppid, cmd.strip() or f"[pid {entry.name}]")
+        if marked and pid != os.getpid():
+            found[pid] = proc
     return found
 
 
-def left_behind(procs: dict[int, tuple[int, str]], me: int) -> dict[int, str]:
+def left_behind(procs: dict[int, Proc], me: int) -> dict[int, str]:
     """The processes of `procs` (from `marked_processes`) that lost the parent that started
     them (it exited, so they belong to init now), with everything below them. This process's
     own children are not among them: they are its helpers (multiprocessing's resource
     tracker, wandb's service), which end when it ends."""
-    left = {pid for pid, (ppid, _) in procs.items() if ppid != me and ppid not in procs}
-    while more := {pid for pid, (ppid, _) in procs.items() if ppid in left} - left:
-        left |= more
-    return {pid: procs[pid][1] for pid in sorted(left)}
+    orphans = {pid for pid, p in procs.items() if p.ppid != me and p.ppid not in procs}
+    return {pid: procs[pid].cmd for pid in sorted(with_descendants(procs, orphans))}
 
 
 def pytest_sessionfinish(session):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from cluster.launch.ray_cluster import Proc
 from tests.conftest import MARKER, left_behind, marked_processes
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads Linux /proc")
@@ -38,7 +39,8 @@ def test_an_orphan_is_left_behind_and_a_child_of_this_process_is_not():
     orphan = _orphan()
     try:
         procs = marked_processes(os.environ[MARKER])
-        assert procs[child.pid] == (os.getpid(), f"{sys.executable} -c {SLEEP}")
+        assert procs[child.pid].ppid == os.getpid()
+        assert procs[child.pid].cmd == f"{sys.executable} -c {SLEEP}"
         assert orphan in procs and os.getpid() not in procs
         left = left_behind(procs, os.getpid())
         assert orphan in left and child.pid not in left
@@ -49,7 +51,8 @@ def test_an_orphan_is_left_behind_and_a_child_of_this_process_is_not():
 
 
 def test_what_is_below_an_orphan_is_left_behind_too():
-    procs = {10: (1, "orphan"), 11: (10, "its child"), 12: (11, "grandchild"), 20: (99, "mine")}
+    tree = {10: (1, "orphan"), 11: (10, "its child"), 12: (11, "grandchild"), 20: (99, "mine")}
+    procs = {pid: Proc(ppid, 0, 0, "S", cmd) for pid, (ppid, cmd) in tree.items()}
     assert left_behind(procs, me=99) == {10: "orphan", 11: "its child", 12: "grandchild"}
 
 

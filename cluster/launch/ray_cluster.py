@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 from cluster.errors import Terminated
 from cluster.metrics.discovery import default_state_dir
@@ -252,8 +253,18 @@ def status() -> str:
     return f"address: {state.address}\n{done.stdout.strip()}"
 
 
-def _proc_table() -> dict[int, tuple[int, int, str]]:
-    """pid -> (parent pid, process group, command line) of every process we can read."""
+class Proc(NamedTuple):
+    """One process, from /proc/<pid>/stat and cmdline."""
+
+    ppid: int
+    pgid: int
+    sid: int
+    state: str  # "R", "S", ..., "Z" for a zombie
+    cmd: str
+
+
+def process_table() -> dict[int, Proc]:
+    """pid -> `Proc` of every process we can read (Linux /proc)."""
     table = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -263,25 +274,26 @@ def _proc_table() -> dict[int, tuple[int, int, str]]:
             cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
         except OSError:  # exited meanwhile, or not ours to read
             continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        table[int(entry.name)] = (int(fields[1]), int(fields[2]), cmdline)
+        f = stat[stat.rindex(")") + 2 :].split()
+        table[int(entry.name)] = Proc(int(f[1]), int(f[2]), int(f[3]), f[0], cmdline.strip())
     return table
+
+
+def with_descendants(table: dict[int, Proc], roots: set[int]) -> set[int]:
+    """`roots` and every process of `table` below them."""
+    found = set(roots)
+    while children := {pid for pid, p in table.items() if p.ppid in found} - found:
+        found |= children
+    return found
 
 
 def cluster_processes(pgid: int) -> list[int]:
     """The head's processes: the members of `ray start`'s process group that are Ray's (a
     reused group id names no Ray process), and their descendants (workers set up groups of
     their own, but their parent is the raylet)."""
-    table = _proc_table()
-    found = {
-        pid for pid, (_, group, cmd) in table.items() if group == pgid and "ray" in cmd.lower()
-    }
-    grew = True
-    while grew:
-        children = {pid for pid, (ppid, _, _) in table.items() if ppid in found} - found
-        found |= children
-        grew = bool(children)
-    return sorted(found)
+    table = process_table()
+    ray = {pid for pid, p in table.items() if p.pgid == pgid and "ray" in p.cmd.lower()}
+    return sorted(with_descendants(table, ray))
 
 
 def _signal(pids: list[int], sig: int) -> None:
@@ -319,9 +331,9 @@ def down(grace_s: float = 10.0) -> int:
     pids = cluster_processes(state.pgid)
     _signal(pids, signal.SIGTERM)
     deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline and set(pids) & set(_proc_table()):
+    while time.monotonic() < deadline and set(pids) & set(process_table()):
         time.sleep(0.2)
-    _signal(sorted(set(pids) & set(_proc_table())), signal.SIGKILL)
+    _signal(sorted(set(pids) & set(process_table())), signal.SIGKILL)
     _forget_ray_address(state.address)
     (state_dir() / "state.json").unlink(missing_ok=True)
     log.info("stopped %d Ray processes of the cluster at %s", len(pids), state.address)

@@ -6,6 +6,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from cluster.launch import ray_cluster
+
 
 def wait_for(
     fn,
@@ -37,19 +39,8 @@ def wait_for(
 
 
 def session_members(sid: int) -> dict[int, str]:
-    """pid -> command line of the live processes in session `sid` (Linux /proc; a process
-    started with `start_new_session=True` leads the session of its own pid, and what it
-    starts, Ray's processes included, stays in it)."""
-    members = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:  # exited meanwhile, or not ours
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[3]) == sid and fields[0] != "Z":
-            members[int(entry.name)] = cmd.strip()
-    return members
+    """pid -> command line of the live processes in session `sid` (a process started with
+    `start_new_session=True` leads the session of its own pid, and what it starts, Ray's
+    processes included, stays in it)."""
+    table = ray_cluster.process_table()
+    return {pid: p.cmd for pid, p in table.items() if p.sid == sid and p.state != "Z"}
