@@ -259,7 +259,7 @@ def cmd_curves(
                 args.seed_group,
             )
         )
-        curves = repro_curves.with_other_groups(curves, out / "evals")
+        curves = repro_curves.with_other_groups(curves, out / "evals", plan.t_max)
     summary = repro_curves.summarise(curves)
     (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
     plots = []
@@ -303,12 +303,13 @@ def cmd_matrix(args: argparse.Namespace) -> int:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     fan = fan_out_config(args)
     overrides = list(args.set) + ([f"run.t_max={args.t_max}"] if args.t_max else [])
-    optimum, t_max, every = {}, 0, []
+    optimum, t_max, every, pair_t_max = {}, 0, [], {}
     for g in games:  # validates every (algo, game) config before any training starts
         cfgs = [load_train_config(a, g, [], overrides) for a in algos]
         optimum[g] = repro_matrix.optimum_of(g, cfgs[0].env.args)
         t_max += sum(c.run.t_max for c in cfgs)
         every += cfgs
+        pair_t_max.update({(g, a): c.run.t_max for a, c in zip(algos, cfgs, strict=True)})
     overrides += seed_group_overrides(args, every)
     out = Path(args.out)
     (out / "evals").mkdir(parents=True, exist_ok=True)
@@ -334,7 +335,7 @@ def cmd_matrix(args: argparse.Namespace) -> int:
             )
         )
         (out / "curves.json").write_text(json.dumps([c.__dict__ for c in curves]) + "\n")
-        curves = repro_matrix.with_other_groups(curves, out / "evals")
+        curves = repro_matrix.with_other_groups(curves, out / "evals", pair_t_max)
     summary = repro_matrix.summarise(curves, optimum)
     plots = [f"matrix_{g.split('/', 1)[1]}.png" for g in games]
     for g, name in zip(games, plots, strict=True):

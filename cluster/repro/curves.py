@@ -178,24 +178,37 @@ def load_evals(
     return [c for c in curves if c is not None]
 
 
-def load_pair(log_dir: Path, algo: str, env: str, until: int | None = None) -> Curve | None:
-    """One pair's curve from the logs of all its seed groups (None without a log)."""
+def load_pair(
+    log_dir: Path,
+    algo: str,
+    env: str,
+    until: int | None = None,
+    finished_at: int | None = None,
+) -> Curve | None:
+    """One pair's curve from the logs of all its seed groups (None without a log; with
+    `finished_at`, only the groups whose log reaches it: `cluster.repro.groups.load`)."""
     pair = Pair(algo, env)
-    loaded = repro_groups.load(log_dir, pair.key, pair.label, until)
+    loaded = repro_groups.load(log_dir, pair.key, pair.label, until, finished_at)
     if loaded is None:
         return None
     rows, info = loaded
     return replace(curve_of(algo, env, rows), commits=info["commits"], groups=info["groups"])
 
 
-def with_other_groups(curves: list[Curve], log_dir: Path) -> list[Curve]:
-    """The curves a run trained, each replaced by the merge of all its pair's seed groups
-    (from their logs in `log_dir`) where other groups have logs there."""
+def with_other_groups(
+    curves: list[Curve], log_dir: Path, t_max: dict[tuple[str, str], int]
+) -> list[Curve]:
+    """The curves a run trained, each replaced by the merge of all its pair's finished seed
+    groups (from their logs in `log_dir`: those that reach the pair's t_max, `t_max[(env,
+    algo)]`) where other groups have logs there; a group still training is left out."""
 
-    def others(c: Curve) -> bool:
-        return repro_groups.others_logged(log_dir, Pair(c.algo, c.env).key, c.groups)
+    def merged(c: Curve) -> Curve:
+        if not repro_groups.others_logged(log_dir, Pair(c.algo, c.env).key, c.groups):
+            return c
+        every = load_pair(log_dir, c.algo, c.env, finished_at=t_max[(c.env, c.algo)])
+        return every if every is not None and len(every.groups) > 1 else c  # none finished
 
-    return [load_pair(log_dir, c.algo, c.env) if others(c) else c for c in curves]
+    return [merged(c) for c in curves]
 
 
 def curve_of(algo: str, env: str, rows: list[dict]) -> Curve:

@@ -174,10 +174,29 @@ def merge(groups: dict[int, list[dict]], label: str) -> tuple[list[dict], dict]:
     return merged, info
 
 
-def load(log_dir: Path, key: str, label: str, until: int | None = None):
+def load(
+    log_dir: Path,
+    key: str,
+    label: str,
+    until: int | None = None,
+    finished_at: int | None = None,
+):
     """The merged rows and info (`merge`) of every seed group's log of the pair `key`, or
-    None when it has none."""
-    paths = group_logs(log_dir, key)
-    if not paths:
+    None when it has none. With `finished_at`, only the groups whose log reaches that many env
+    steps (the pair's run.t_max) are merged: a group still training into the same --out, or
+    stopped, is left out (logged) rather than cut every other group short."""
+    rows = {g: read_rows(p, until) for g, p in group_logs(log_dir, key).items()}
+    if finished_at is not None:
+        for g in [g for g, r in rows.items() if r[-1]["t_env"] < finished_at]:
+            log.warning(
+                "%s: seed group %d's log ends at t_env %d of %d (still training, or stopped): "
+                "left out of this summary; `--summarise-only` merges it, up to the shortest "
+                "group",
+                label,
+                g,
+                rows.pop(g)[-1]["t_env"],
+                finished_at,
+            )
+    if not rows:
         return None
-    return merge({g: read_rows(p, until) for g, p in paths.items()}, label)
+    return merge(rows, label)

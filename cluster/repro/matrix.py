@@ -95,10 +95,11 @@ def load_evals(log_dir: Path, algos: list[str], games: list[str]) -> list[Curve]
     return [c for c in curves if c is not None]
 
 
-def load_pair(log_dir: Path, algo: str, game: str) -> Curve | None:
-    """One pair's curve from the logs of all its seed groups (None without a log)."""
+def load_pair(log_dir: Path, algo: str, game: str, finished_at: int | None = None) -> Curve | None:
+    """One pair's curve from the logs of all its seed groups (None without a log; with
+    `finished_at`, only the groups whose log reaches it: `cluster.repro.groups.load`)."""
     pair = Pair(algo, game)
-    loaded = repro_groups.load(log_dir, pair.key, pair.label)
+    loaded = repro_groups.load(log_dir, pair.key, pair.label, finished_at=finished_at)
     if loaded is None:
         return None
     rows, info = loaded
@@ -107,14 +108,21 @@ def load_pair(log_dir: Path, algo: str, game: str) -> Curve | None:
     return Curve(algo, game, t_env, returns, wall_s, None, info["commits"], info["groups"])
 
 
-def with_other_groups(curves: list[Curve], log_dir: Path) -> list[Curve]:
-    """The curves a run trained, each replaced by the merge of all its pair's seed groups
-    (from their logs in `log_dir`, without RDN diagnostics) where other groups have logs."""
+def with_other_groups(
+    curves: list[Curve], log_dir: Path, t_max: dict[tuple[str, str], int]
+) -> list[Curve]:
+    """The curves a run trained, each replaced by the merge of all its pair's finished seed
+    groups (from their logs in `log_dir`, without RDN diagnostics: those that reach the pair's
+    t_max, `t_max[(game, algo)]`) where other groups have logs; a group still training is
+    left out."""
 
-    def others(c: Curve) -> bool:
-        return repro_groups.others_logged(log_dir, Pair(c.algo, c.game).key, c.groups)
+    def merged(c: Curve) -> Curve:
+        if not repro_groups.others_logged(log_dir, Pair(c.algo, c.game).key, c.groups):
+            return c
+        every = load_pair(log_dir, c.algo, c.game, finished_at=t_max[(c.game, c.algo)])
+        return every if every is not None and len(every.groups) > 1 else c  # none finished
 
-    return [load_pair(log_dir, c.algo, c.game) if others(c) else c for c in curves]
+    return [merged(c) for c in curves]
 
 
 def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import random
+from dataclasses import replace
 
 import pytest
 import torch
@@ -16,7 +17,7 @@ from cluster.config.train import load_train_config
 from cluster.errors import UsageError
 from cluster.launch.local import LocalTrainer
 from cluster.process import configure
-from cluster.repro import groups
+from cluster.repro import curves, groups, matrix
 
 SKIRMISH = ["--envs", "skirmish/3m", "--algos", "vdn", "--t-max", "120", "--workers", "1"]
 SKIRMISH += ["--test-interval", "40", "--checkpoint-every", "60"]
@@ -94,6 +95,36 @@ def test_merge_concatenates_seeds_up_to_the_shortest_group(caplog):
     assert info["commits"] == ["c1", "c2"]
     with pytest.raises(UsageError, match="different --test-interval"):
         groups.merge({0: g0, 1: _rows([100, 200], 1, 1.0)}, "vdn@x")
+
+
+def _write(folder, name: str, rows: list[dict]) -> None:
+    (folder / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_a_group_still_training_is_left_out_of_another_groups_summary(tmp_path, caplog):
+    """A run of group 0 that ends while group 1 still trains into the same --out summarises
+    the finished groups only (it used to cut them all to group 1's few evaluations)."""
+    _write(tmp_path, "skirmish-3m__vdn.jsonl", _rows([10, 52, 101], 1, 0.0))
+    _write(tmp_path, "skirmish-3m__vdn.g1.jsonl", _rows([12, 49], 2, 1.0))  # still training
+    _write(tmp_path, "skirmish-3m__vdn.g2.jsonl", _rows([11, 50, 100], 1, 1.0))
+    _write(tmp_path, "matrix-two_step__vdn.jsonl", _rows([10, 52, 101], 1, 0.0))
+    _write(tmp_path, "matrix-two_step__vdn.g1.jsonl", _rows([12, 49], 2, 1.0))
+    mine = curves.load_pair(tmp_path, "vdn", "skirmish/3m", finished_at=999)
+    assert mine is None  # no group has finished a run of 999 steps
+    own = curves.curve_of("vdn", "skirmish/3m", _rows([10, 52, 101], 1, 0.0))
+    own = replace(own, groups=[{"group": 0, "seeds": 1, "evaluations": 3}])
+    with caplog.at_level(logging.WARNING):
+        (merged,) = curves.with_other_groups([own], tmp_path, {("skirmish/3m", "vdn"): 100})
+    assert "vdn@skirmish/3m: seed group 1's log ends at t_env 49 of 100" in caplog.text
+    assert [g["group"] for g in merged.groups] == [0, 2]
+    assert merged.t_env == [11, 52, 101] and merged.won[-1] == [0.0, 1.0]
+    (alone,) = curves.with_other_groups([own], tmp_path, {("skirmish/3m", "vdn"): 101})
+    assert alone is own  # group 2 (to 100) has not finished a run of 101 either
+    game = matrix.load_pair(tmp_path, "vdn", "matrix/two_step")
+    assert game is not None and len(game.t_env) == 2  # --summarise-only: up to the shortest
+    mine = replace(game, groups=[{"group": 0, "seeds": 1, "evaluations": 3}])
+    (kept,) = matrix.with_other_groups([mine], tmp_path, {("matrix/two_step", "vdn"): 100})
+    assert kept is mine
 
 
 def _log(out, name: str) -> list[dict]:
