@@ -201,14 +201,7 @@ def with_other_groups(
     """The curves a run trained, each replaced by the merge of all its pair's finished seed
     groups (from their logs in `log_dir`: those that reach the pair's t_max, `t_max[(env,
     algo)]`) where other groups have logs there; a group still training is left out."""
-
-    def merged(c: Curve) -> Curve:
-        if not repro_groups.others_logged(log_dir, Pair(c.algo, c.env).key, c.groups):
-            return c
-        every = load_pair(log_dir, c.algo, c.env, finished_at=t_max[(c.env, c.algo)])
-        return every if every is not None and len(every.groups) > 1 else c  # none finished
-
-    return [merged(c) for c in curves]
+    return repro_groups.with_finished_groups(curves, log_dir, t_max, lambda c: c.env, load_pair)
 
 
 def curve_of(algo: str, env: str, rows: list[dict]) -> Curve:

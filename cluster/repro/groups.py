@@ -29,9 +29,12 @@ from __future__ import annotations
 import json
 import logging
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from cluster.errors import UsageError
+from cluster.repro.pairs import Pair
 
 log = logging.getLogger(__name__)
 
@@ -200,3 +203,25 @@ def load(
     if not rows:
         return None
     return merge(rows, label)
+
+
+def with_finished_groups(
+    curves: list[Any],
+    log_dir: Path,
+    t_max: dict[tuple[str, str], int],
+    place: Callable[[Any], str],
+    load_pair: Callable[..., Any],
+) -> list[Any]:
+    """The curves a run trained, each replaced by the merge of its pair's finished seed groups
+    where other groups have logs in `log_dir`: `load_pair(log_dir, algo, place(curve),
+    finished_at=t_max[(place(curve), algo)])`, `place` being the curve's env (or game). A group
+    still training is left out (`load`); with no other group finished, the curve stays."""
+
+    def merged(c: Any) -> Any:
+        where = place(c)
+        if not others_logged(log_dir, Pair(c.algo, where).key, c.groups):
+            return c
+        every = load_pair(log_dir, c.algo, where, finished_at=t_max[(where, c.algo)])
+        return every if every is not None and len(every.groups) > 1 else c
+
+    return [merged(c) for c in curves]

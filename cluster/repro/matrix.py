@@ -115,14 +115,7 @@ def with_other_groups(
     groups (from their logs in `log_dir`, without RDN diagnostics: those that reach the pair's
     t_max, `t_max[(game, algo)]`) where other groups have logs; a group still training is
     left out."""
-
-    def merged(c: Curve) -> Curve:
-        if not repro_groups.others_logged(log_dir, Pair(c.algo, c.game).key, c.groups):
-            return c
-        every = load_pair(log_dir, c.algo, c.game, finished_at=t_max[(c.game, c.algo)])
-        return every if every is not None and len(every.groups) > 1 else c  # none finished
-
-    return [merged(c) for c in curves]
+    return repro_groups.with_finished_groups(curves, log_dir, t_max, lambda c: c.game, load_pair)
 
 
 def summarise(curves: list[Curve], optimum: dict[str, float]) -> dict:
