@@ -21,9 +21,10 @@ from cluster.launch.ray_cluster import Proc, process_table, with_descendants
 
 # A default-tier test this long on the project's 2-core machine belongs in the slow tier
 # (tests/README.md). Reported, never asserted: timings on a shared machine drift.
-REPORT_OVER_S = 20.0
+REPORT_OVER_S = float(os.environ.get("CREDIT_TEST_REPORT_OVER_S", "20"))
 
 _durations: dict[str, float] = {}
+_kept: dict[str, str] = {}  # nodeid -> why it stays in the default tier though long
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -32,6 +33,9 @@ def pytest_runtest_makereport(item, call):
     report = outcome.get_result()
     if report.when != "teardown" and not item.get_closest_marker("slow"):
         _durations[item.nodeid] = _durations.get(item.nodeid, 0.0) + report.duration
+        kept = item.get_closest_marker("default_tier")
+        if kept is not None:
+            _kept[item.nodeid] = kept.kwargs.get("reason") or (kept.args or ("",))[0]
 
 
 def pytest_terminal_summary(terminalreporter):
@@ -40,14 +44,19 @@ def pytest_terminal_summary(terminalreporter):
         for pid, cmd in _left:
             terminalreporter.write_line(f"pid {pid}: {cmd[:160]}")
     long = sorted(((s, n) for n, s in _durations.items() if s > REPORT_OVER_S), reverse=True)
-    if not long:
-        return
-    terminalreporter.section("tests that belong in the slow tier (tests/README.md)")
-    for seconds, nodeid in long:
-        terminalreporter.write_line(f"{seconds:6.1f} s  {nodeid}  (not marked slow)")
+    kept = [(s, n) for s, n in long if n in _kept]
+    long = [(s, n) for s, n in long if n not in _kept]
+    if kept:
+        terminalreporter.section("long tests kept in the default tier on purpose (tests/README.md)")
+        for seconds, nodeid in kept:
+            terminalreporter.write_line(f"{seconds:6.1f} s  {nodeid}  ({_kept[nodeid]})")
+    if long:
+        terminalreporter.section("tests that belong in the slow tier (tests/README.md)")
+        for seconds, nodeid in long:
+            terminalreporter.write_line(f"{seconds:6.1f} s  {nodeid}  (not marked slow)")
 
 
-pytest_plugins = ["pytester"]  # tests/test_leftover_processes.py runs a test run of its own
+pytest_plugins = ["pytester"]  # test_leftover_processes.py, test_tier_report.py: runs of their own
 
 MARKER = "CREDIT_TEST_SESSION"
 # How long processes still shutting down (ray.shutdown's own SIGTERM, then SIGKILL) get.
@@ -57,6 +66,11 @@ _left: list[tuple[int, str]] = []
 
 def pytest_configure(config):
     os.environ.setdefault(MARKER, f"{os.getpid()}-{uuid.uuid4().hex}")
+    config.addinivalue_line(
+        "markers",
+        "default_tier(reason): long, but kept in `make test` on purpose (tests/README.md); "
+        "the report of long tests lists it apart, with its reason",
+    )
 
 
 def marked_processes(value: str) -> dict[int, Proc]:

@@ -65,6 +65,7 @@ def _assert_whole_and_unique(state, in_flight: int = 0):
         assert ep.length == 2 and bool(ep.terminated[-1]) and ep.filled.all()  # whole episodes
 
 
+@pytest.mark.default_tier(reason="the default tier's cluster run")
 def test_cluster_outputs_match_local_mode(tmp_path, env):
     """A one-actor cluster run and a local run with the same seed: the same outputs (every
     summary key of local mode, metrics lines, checkpoint), and the same episodes for the
@@ -128,6 +129,7 @@ def test_emcac_trains_in_cluster_mode_on_both_tables(tmp_path, env):
     assert learner["target_policy"] is not None  # EM-CAC's Polyak policy is checkpointed
 
 
+@pytest.mark.default_tier(reason="the default tier's cluster kill -9")
 def test_kill9_actor_is_restarted_and_buffer_stays_whole(tmp_path, env):
     out = tmp_path / "run"
     proc = _start([*BASE, "--t-max", "600", *BIG_REPLAY], env, out)

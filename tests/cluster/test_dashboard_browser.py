@@ -86,6 +86,7 @@ def check_dashboard(driver, url: str, shot: str) -> dict[str, dict]:
     return state
 
 
+@pytest.mark.default_tier(reason="watches the default tier's live cluster run")
 def test_dashboard_scraping_exporters(running_training, browser):
     cfg = DashboardConfig(port=0, range_s=120)
     server = DashboardServer(cfg, ExporterSource(lambda: running_training, cfg)).start()
@@ -96,6 +97,7 @@ def test_dashboard_scraping_exporters(running_training, browser):
 
 
 @pytest.mark.skipif(shutil.which("prometheus") is None, reason="prometheus not on PATH")
+@pytest.mark.default_tier(reason="watches the default tier's live cluster run")
 def test_dashboard_reading_prometheus(running_training, browser, tmp_path):
     sd = discovery.write_file_sd(
         tmp_path / "sd.json", [discovery.parse_target(t) for t in running_training]

@@ -63,6 +63,7 @@ def env_steps_by_actor(url: str) -> dict[str, float]:
 
 
 @needs_prometheus
+@pytest.mark.default_tier(reason="watches the default tier's live cluster run")
 def test_real_prometheus_scrapes_a_cluster_training(running_training, tmp_path, capsys):
     """`credit metrics up` scrapes a live `credit train --mode cluster`: every actor's env-step
     counter rises, and the learner's update counter and the buffer's size are there."""
