@@ -64,8 +64,23 @@ GRACE_S = float(os.environ.get("CREDIT_TEST_REAP_GRACE_S", "10"))
 _left: list[tuple[int, str]] = []
 
 
+def restore_ctrl_c() -> None:
+    """Give SIGINT back its KeyboardInterrupt handler if the shell set it to "ignore".
+
+    A shell that runs a command in the background (`make test-slow &`, `nohup ... &` in a
+    script) sets SIGINT to ignored, every child inherits that, and Python installs its
+    KeyboardInterrupt handler only where SIGINT is at its default at startup. The tests that
+    stop a child with SIGINT, as a user stops it with Ctrl-C, would then wait on a process
+    that ignores it (a cluster `credit train` ran on for 13 minutes so on 2026-12-07). A
+    Python-level handler is reset to the default on exec, so every child of this process
+    starts with SIGINT at its default again."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def pytest_configure(config):
     os.environ.setdefault(MARKER, f"{os.getpid()}-{uuid.uuid4().hex}")
+    restore_ctrl_c()
     config.addinivalue_line(
         "markers",
         "default_tier(reason): long, but kept in `make test` on purpose (tests/README.md); "

@@ -15,7 +15,6 @@ import yaml
 from cluster.cli import main
 from cluster.metrics import discovery
 from cluster.metrics import prometheus as prom
-from tests.cluster.ctrl_c import sigint_default
 from tests.cluster.polling import wait_for
 
 HAVE_PROMETHEUS = shutil.which("prometheus") is not None
@@ -180,8 +179,7 @@ def test_two_concurrent_cluster_runs_are_both_scraped(tmp_path, capsys):
         cmd += ["--algo", "vdn", "--env", "matrix/two_step", "--t-max", "100000000"]
         cmd += ["--out", str(out), "--set", "run.test_interval=100000"]
         log = open(tmp_path / f"{name}.log", "w")  # noqa: SIM115 - closed with the process
-        child = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, preexec_fn=sigint_default)
-        procs[name] = (child, log)
+        procs[name] = (subprocess.Popen(cmd, env=env, stdout=log, stderr=log), log)
     metrics_state = tmp_path / "prometheus"
     try:
         for name, out in runs.items():

@@ -16,7 +16,6 @@ from pathlib import Path
 import pytest
 
 from cluster.cli import main
-from tests.cluster.ctrl_c import sigint_default
 from tests.cluster.polling import wait_for
 from tests.cluster.test_repro_cluster import _credit, _free_port
 
@@ -81,9 +80,7 @@ def _started(text: str) -> list[tuple[str, int]]:
 def _driver(command: list[str], env: dict, log_path: Path) -> subprocess.Popen:
     log = open(log_path, "w")  # noqa: SIM115 - the child holds it; closed when the test ends
     argv = [sys.executable, "-m", "cluster.cli", *command]
-    return subprocess.Popen(
-        argv, cwd=ROOT, env=env, stdout=log, stderr=log, preexec_fn=sigint_default
-    )
+    return subprocess.Popen(argv, cwd=ROOT, env=env, stdout=log, stderr=log)
 
 
 @pytest.mark.slow
