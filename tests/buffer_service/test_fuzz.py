@@ -3,6 +3,7 @@ well-behaved client keeps being served during and after, and memory stays bounde
 
 from __future__ import annotations
 
+import errno
 import gc
 import random
 import socket
@@ -64,6 +65,12 @@ def poke(port: int, payload: bytes, hello: dict | None = None):
             return _read_reply(s)
         except (ConnectionResetError, BrokenPipeError):
             return "closed"
+        except OSError as e:
+            # The server dropped the connection (a reset) before the half-close: shutdown()
+            # then says "not connected". Seen once in a fresh clone's `make test`, 2026-12-07.
+            if e.errno == errno.ENOTCONN:
+                return "closed"
+            raise
 
 
 def hello(token=TOKEN, **kw) -> dict:
