@@ -18,6 +18,7 @@ from buffer_service.episode import Episode, EpisodeSchema
 # CPU features that change what a benchmark measures: the vector width of the float32
 # kernels and whether bfloat16 products run natively (`learner.precision`)
 CPU_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile")
+OPENMP_ENV = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")
 
 
 def cpu_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, Any]:
@@ -37,6 +38,8 @@ def machine() -> dict[str, Any]:
         "cpus": os.cpu_count(),
         **cpu_info(),
         "numpy": np.__version__,
+        # how torch's OpenMP threads wait (read once as torch loads; `cluster.cpu`)
+        "openmp_env": {k: os.environ.get(k) for k in OPENMP_ENV},
     }
     try:
         import torch

@@ -16,3 +16,14 @@ def test_cpu_info_names_the_model_and_the_flags_that_change_timings(tmp_path):
 def test_machine_carries_the_cpu():
     got = machine()
     assert {"cpu_model", "cpu_flags", "cpus", "torch"} <= set(got)
+
+
+def test_machine_carries_how_openmp_threads_wait(monkeypatch):
+    monkeypatch.setenv("GOMP_SPINCOUNT", "1000")
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert machine()["openmp_env"] == {
+        "OMP_WAIT_POLICY": "ACTIVE",
+        "GOMP_SPINCOUNT": "1000",
+        "OMP_NUM_THREADS": None,
+    }
