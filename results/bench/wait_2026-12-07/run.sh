@@ -5,7 +5,7 @@
 # Each with the auto thread count (bench learn's default) and with --threads 2 fixed, each
 # quiet and beside `credit bench load` (--compare-load: one busy process per CPU); then the
 # training loop on bane_vs_bane (RDN, 3 seeds, auto threads) quiet and beside the load.
-# Usage, from the repository root: results/bench/wait_2026-12-07/run.sh
+# Usage, from the repository root: results/bench/wait_2026-12-07/run.sh [learn|all]
 set -euo pipefail
 OUT=results/bench/wait_2026-12-07
 PY=${PY:-.venv/bin/python}
@@ -31,6 +31,7 @@ for wait in passive spin1k spin10k; do
       --out $OUT/learn_3m_qmix_${wait}_t${threads}.json > /dev/null
   done
 done
+[ "${1:-all}" = learn ] && { load end; exit 0; }
 train="bench train --env skirmish/bane_vs_bane --algo rdn --seeds 3 --steps 1500 --set run.torch_threads=0"
 for wait in passive spin10k spin1k; do
   load "train_${wait}_quiet"
