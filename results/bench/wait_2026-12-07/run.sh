@@ -5,7 +5,7 @@
 # Each with the auto thread count (bench learn's default) and with --threads 2 fixed, each
 # quiet and beside `credit bench load` (--compare-load: one busy process per CPU); then the
 # training loop on bane_vs_bane (RDN, 3 seeds, auto threads) quiet and beside the load.
-# Usage, from the repository root: results/bench/wait_2026-12-07/run.sh [learn|all]
+# Usage, from the repository root: results/bench/wait_2026-12-07/run.sh [learn|train|all]
 set -euo pipefail
 OUT=results/bench/wait_2026-12-07
 PY=${PY:-.venv/bin/python}
@@ -24,7 +24,7 @@ with_wait() {
   esac
 }
 learn="bench learn --env skirmish/3m --algo qmix --target-win 0.95 --seeds 3 --compare-load"
-for wait in passive spin1k spin10k; do
+[ "${1:-all}" = train ] || for wait in passive spin1k spin10k; do
   for threads in 0 2; do
     load "learn_${wait}_t${threads}"
     with_wait $wait env PYTHONPATH=. $PY -m cluster.cli $learn --threads $threads \
