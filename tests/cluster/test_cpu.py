@@ -29,16 +29,66 @@ def keep_torch_threads():
     torch.set_num_threads(before)
 
 
-def test_a_credit_process_sets_a_passive_wait_policy_before_torch_loads():
+def test_a_credit_process_sets_a_passive_wait_with_a_short_spin_before_torch_loads():
     """Every entry point (`credit`, Ray workers running our functions) imports the package
     `cluster` before any of its modules, and so before they import torch."""
-    code = "import os, sys, cluster; print(os.environ['OMP_WAIT_POLICY'], 'torch' in sys.modules)"
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
-    assert out.stdout.split() == ["PASSIVE", "False"], out.stderr
-    env["OMP_WAIT_POLICY"] = "ACTIVE"  # a user's own setting stays
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
-    assert out.stdout.split() == ["ACTIVE", "False"], out.stderr
+    code = "import os, sys, cluster; e = os.environ.get; "
+    code += "print(e('OMP_WAIT_POLICY'), e('GOMP_SPINCOUNT'), 'torch' in sys.modules)"
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+
+    def run(**extra: str) -> list[str]:
+        out = subprocess.run(
+            [sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True
+        )
+        return out.stdout.split() or [out.stderr]
+
+    assert run() == ["PASSIVE", cpu.SHORT_SPIN, "False"]
+    assert run(GOMP_SPINCOUNT="0") == ["PASSIVE", "0", "False"]  # a user's spin stays
+    # a user's own policy decides the spin too: none is added to it
+    assert run(OMP_WAIT_POLICY="ACTIVE") == ["ACTIVE", "None", "False"]
+    assert run(OMP_WAIT_POLICY="PASSIVE") == ["PASSIVE", "None", "False"]
+
+
+@pytest.mark.parametrize(
+    "policy, count, spins",
+    [
+        ("PASSIVE", None, False),
+        ("PASSIVE", "0", False),
+        ("PASSIVE", "10000", True),
+        ("passive", "10k", True),
+        ("PASSIVE", "infinite", True),
+        ("PASSIVE", "lots", False),  # libgomp ignores it and keeps PASSIVE's 0
+        ("ACTIVE", None, True),
+        (None, None, True),  # libgomp's own default spins
+    ],
+)
+def test_spinning_reads_the_wait_as_libgomp_does(monkeypatch, policy, count, spins):
+    for name, value in (("OMP_WAIT_POLICY", policy), ("GOMP_SPINCOUNT", count)):
+        if value is None:
+            monkeypatch.delenv(name, raising=False)
+        else:
+            monkeypatch.setenv(name, value)
+    assert cpu.spinning() is spins
+
+
+def test_a_fixed_count_on_a_busy_machine_warns_when_threads_spin(
+    keep_torch_threads, monkeypatch, caplog
+):
+    monkeypatch.setattr(cpu, "busy_elsewhere", lambda: 2.0)
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
+    monkeypatch.setenv("GOMP_SPINCOUNT", cpu.SHORT_SPIN)
+    with caplog.at_level("WARNING", logger="cluster.cpu"):
+        cpu.ThreadGovernor(2)
+    assert "torch threads fixed at 2 while other processes keep about 2.0 CPUs busy" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="cluster.cpu"):
+        cpu.ThreadGovernor(1)  # one thread has no team to wait for
+        monkeypatch.setenv("GOMP_SPINCOUNT", "0")
+        cpu.ThreadGovernor(2)  # threads that sleep at once
+        monkeypatch.setattr(cpu, "busy_elsewhere", lambda: 0.2)
+        monkeypatch.setenv("GOMP_SPINCOUNT", cpu.SHORT_SPIN)
+        cpu.ThreadGovernor(2)  # a quiet machine
+    assert caplog.text == ""
 
 
 def test_busy_processes_are_counted_and_auto_leaves_them_their_cpus():
